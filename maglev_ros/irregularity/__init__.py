@@ -1,0 +1,1 @@
+"""Guideway irregularity by the inertial reference method (no rclpy)."""

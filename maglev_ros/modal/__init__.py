@@ -1,0 +1,1 @@
+"""Guideway modal identification (no rclpy)."""

@@ -1,0 +1,1 @@
+"""Digital twin: vehicle/guideway coupled model (no rclpy)."""

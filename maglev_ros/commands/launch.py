@@ -1,0 +1,32 @@
+"""``maglev-ros launch GRAPH``: start the suite's node graph (our own launcher; see launch/)."""
+from __future__ import annotations
+
+import os
+
+from maglev_ros.errors import UserError
+
+NAME = "launch"
+HELP = "start a node graph (monitor) in separate processes, optionally driven by a bag replay"
+ORDER = 40
+
+
+def add_arguments(p) -> None:
+    p.add_argument("graph", help="graph name: monitor")
+    p.add_argument("--bag", help="replay this bag through the graph")
+    p.add_argument("--rate", type=float, default=1.0, help="replay rate (0.1-100)")
+    p.add_argument("--fast", action="store_true", help="replay as fast as possible")
+    p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
+
+
+def run(args) -> int:
+    from maglev_ros.launcher import launch
+    from maglev_ros.replay_timing import check_rate
+    if args.bag and not os.path.exists(args.bag):
+        raise UserError(f"{args.bag}: no such bag")
+    if args.params_file and not os.path.exists(args.params_file):
+        raise UserError(f"{args.params_file}: no such parameters file")
+    if not args.fast:
+        check_rate(args.rate)
+    replay = {"rate": float(args.rate), "fast": bool(args.fast)}
+    return launch(args.graph, bag=args.bag, overrides={"replay": replay},
+                  params_file=args.params_file)

@@ -1,0 +1,43 @@
+"""The suite's node graphs as data (no rclpy): used by ``maglev-ros launch`` and launch/*.launch.py.
+
+Each later capability adds its node here once; both launchers pick it up.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    name: str                       # node name and console script
+    module: str                     # python module with main()
+    params: dict = field(default_factory=dict)
+    needs_bag: bool = False         # only started when a bag is given
+
+
+GRAPHS: dict[str, list[NodeSpec]] = {
+    "monitor": [
+        NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
+    ],
+}
+
+
+def graph(name: str) -> list[NodeSpec]:
+    from maglev_ros.errors import UserError
+    if name not in GRAPHS:
+        raise UserError(f"unknown graph '{name}' (known: {', '.join(sorted(GRAPHS))})")
+    return GRAPHS[name]
+
+
+def ros_param_args(params: dict) -> list[str]:
+    """``-p name:=value`` arguments for a parameter dict (bools lower-case, lists in YAML)."""
+    out: list[str] = []
+    for k, v in params.items():
+        if isinstance(v, bool):
+            val = str(v).lower()
+        elif isinstance(v, (list, tuple)):
+            val = "[" + ",".join(repr(x) if isinstance(x, str) else str(x) for x in v) + "]"
+        else:
+            val = str(v)
+        out += ["-p", f"{k}:={val}"]
+    return out

@@ -1,0 +1,71 @@
+"""Small shared pieces of the ROS 2 adapters: QoS profiles, message classes, clean spin/shutdown."""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+import rclpy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# Data streams: reliable, so a replay at high rate loses nothing a subscriber can keep up with.
+QOS_STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+# Latched: late subscribers still get the last message (metadata, parameters, profiles).
+QOS_LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                       reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE)
+
+LATCHED_TOPICS = ("/testline/metadata", "/maglev/twin/parameters")
+
+
+def message_class(msgtype: str):
+    """The rclpy class of a ROS 2 type name like ``maglev_msgs/msg/SensorBlock`` (None if absent)."""
+    try:
+        pkg, kind, name = msgtype.split("/")
+        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+    except (ValueError, ImportError, AttributeError):
+        return None
+
+
+def qos_for(topic: str) -> QoSProfile:
+    return QOS_LATCHED if topic in LATCHED_TOPICS else QOS_STREAM
+
+
+def run_node(node_factory, args=None) -> int:
+    """Init rclpy, build the node, spin it with an EventsExecutor, shut down cleanly.
+
+    The node may define ``finished`` (bool attribute) to end the spin on its own.
+    """
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    executor = None
+    code = 0
+    try:
+        node = node_factory()
+        from rclpy.experimental import EventsExecutor
+        executor = EventsExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not getattr(node, "finished", False):
+            executor.spin_once(timeout_sec=0.1)
+        code = int(getattr(node, "exit_code", 0))
+    except KeyboardInterrupt:
+        code = 130
+    except Exception as exc:  # one clear line for user mistakes raised while building the node
+        from maglev_ros.errors import UserError
+        if not isinstance(exc, UserError):
+            raise
+        print(f"{os.path.basename(sys.argv[0])}: error: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return code

@@ -1,0 +1,682 @@
+"""BagReader: stream contract bags (rosbag2 MCAP / sqlite3, ROS1 .bag) without rclpy.
+
+Reading goes through rosbags' AnyReader and its generated CDR deserialisers (float32[] comes
+back as a numpy view on the message bytes, so no per-sample Python work). Type definitions are
+taken from the bag itself (so bags written by anyone from the contract's .msg text decode),
+falling back to the suite's typestore.
+
+Times: the header stamp is the truth; the bag's receive time may lag it. ``start_s`` /
+``duration_s`` windows are seconds after ``reader.start_time_s`` (the earliest header stamp of
+the bag's data topics), while ``Block.stamp_ns`` and ``ChannelData.time_s`` are absolute stream
+time (header stamp).
+
+Contract checks (:meth:`BagReader.check`) stream over the bag, keeping only one small record
+per block (stamp, length, rate, data digest) to find gaps, overlaps, disorder and duplicates.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from maglev_ros.contract import (SENSORBLOCK_TYPE, STRING_TYPE, TOPIC_METADATA, Issue, Metadata,
+                                 check_units, parse_metadata)
+from maglev_ros.errors import ContractError, UserError
+from maglev_ros.sensor_block import Block, typestore
+
+__all__ = ["BagReader", "TopicInfo", "ChannelData", "Issue", "SENSORBLOCK_FIELDS"]
+
+SENSORBLOCK_FIELDS = ("header", "sample_rate_hz", "channels", "units", "data")
+#: How far (beyond the lag seen on the first message) receive time may lag a header stamp
+#: before a windowed read stops scanning.
+LAG_SLACK_NS = 10_000_000_000
+#: At most this many issues of one kind per topic are listed; the rest are summarised.
+MAX_ISSUES_PER_KIND = 20
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """What one topic of the bag holds (channels/units/rate from its first message)."""
+
+    topic: str
+    msgtype: str
+    count: int
+    channels: tuple[str, ...] = ()
+    units: tuple[str, ...] = ()
+    sample_rate_hz: float | None = None
+    frame_id: str | None = None
+    first_stamp_ns: int | None = None
+    first_lag_ns: int | None = None       # receive time - header stamp of the first message
+    block_samples: int | None = None      # samples in the first block
+
+    @property
+    def is_sensor_block(self) -> bool:
+        return self.msgtype == SENSORBLOCK_TYPE
+
+    def to_dict(self) -> dict:
+        d = {"topic": self.topic, "type": self.msgtype, "count": self.count}
+        if self.is_sensor_block:
+            d.update({"channels": list(self.channels), "units": list(self.units),
+                      "sample_rate_hz": self.sample_rate_hz, "frame_id": self.frame_id,
+                      "block_samples": self.block_samples,
+                      "first_stamp_s": None if self.first_stamp_ns is None
+                      else self.first_stamp_ns * 1e-9})
+        return d
+
+
+@dataclass(frozen=True, eq=False)
+class ChannelData:
+    """A whole topic (or a window of it) as arrays. Gaps are kept (time jumps, no NaN fill).
+
+    ``time_s`` (n,) stream time of each sample; ``data`` (n, c) float64; ``issues`` lists what
+    was repaired while reading (duplicates dropped, disorder sorted, overlaps trimmed).
+    """
+
+    topic: str
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+    sample_rate_hz: float
+    time_s: np.ndarray
+    data: np.ndarray
+    issues: tuple[Issue, ...] = field(default=())
+
+    def channel(self, name: str) -> np.ndarray:
+        try:
+            return self.data[:, self.channels.index(name)]
+        except ValueError:
+            raise UserError(f"{self.topic}: no channel {name!r} "
+                            f"(channels: {', '.join(self.channels)})") from None
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.time_s.shape[0])
+
+    def unit(self, name: str) -> str:
+        return self.units[self.channels.index(name)]
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) < 300 else text[:297] + "..."
+
+
+class BagReader:
+    """Context manager reading one contract bag: ``with BagReader(path) as bag: ...``.
+
+    ``strict=True``: a missing or invalid metadata message raises ContractError on open, and
+    :meth:`read_topic` raises on NaN/inf or malformed blocks. ``strict=False`` records such
+    problems as issues (``metadata`` may then be None) and skips malformed blocks.
+    """
+
+    def __init__(self, path: str | os.PathLike, strict: bool = True) -> None:
+        self.path = Path(path)
+        self.strict = strict
+        self.metadata: Metadata | None = None
+        self.topics: dict[str, TopicInfo] = {}
+        self.open_issues: list[Issue] = []
+        self._reader = None
+        self._conns: dict[str, list] = {}
+        self._deser = None
+        self._is2 = True
+
+    # --------------------------------------------------------------------------- opening
+    def _fail(self, what: str) -> ContractError:
+        return ContractError(f"{self.path}: {what}")
+
+    def _resolve_path(self) -> Path:
+        p = self.path
+        if not p.exists():
+            raise self._fail("no such bag (file or directory not found)")
+        if p.is_dir():
+            if (p / "metadata.yaml").is_file():
+                return p
+            files = sorted(list(p.glob("*.mcap")) + list(p.glob("*.db3")))
+            if len(files) == 1:
+                return files[0]
+            raise self._fail("not a bag: directory has no metadata.yaml"
+                             + ("" if not files else f" and {len(files)} storage files"))
+        if p.suffix not in (".mcap", ".db3", ".bag"):
+            raise self._fail("not a bag: expected a rosbag2 directory, a .mcap or .db3 file, "
+                             "or a ROS1 .bag file")
+        return p
+
+    def open(self) -> "BagReader":
+        from rosbags.highlevel import AnyReader
+
+        target = self._resolve_path()
+        try:
+            reader = AnyReader([target], default_typestore=typestore())
+            reader.open()
+        except ContractError:
+            raise
+        except Exception as exc:  # rosbags raises many types for a broken file
+            msg = _one_line(exc)
+            if "magic" in msg.lower() or "truncat" in msg.lower():
+                msg = f"truncated or corrupt bag file ({msg})"
+            raise self._fail(f"cannot open bag: {msg}") from None
+        self._reader = reader
+        self._is2 = reader.is2
+        ts = reader.typestore
+        self._deser = ts.deserialize_cdr if self._is2 else ts.deserialize_ros1
+        try:
+            self._conns = defaultdict(list)
+            for c in reader.connections:
+                self._conns[c.topic].append(c)
+            self._check_types(ts)
+            self._read_metadata()
+            self._read_topic_infos()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _check_types(self, ts) -> None:
+        if SENSORBLOCK_TYPE in ts.fielddefs:
+            names = [f[0] for f in ts.fielddefs[SENSORBLOCK_TYPE][1]]
+            missing = [f for f in SENSORBLOCK_FIELDS if f not in names]
+            if missing:
+                raise self._fail(f"{SENSORBLOCK_TYPE} definition in the bag lacks field(s) "
+                                 f"{', '.join(missing)}")
+
+    def _messages(self, conns, start=None, stop=None):
+        """rosbags message generator with low-level failures turned into one-line errors."""
+        gen = self._reader.messages(connections=conns, start=start, stop=stop)
+        while True:
+            try:
+                item = next(gen)
+            except StopIteration:
+                return
+            except ContractError:
+                raise
+            except Exception as exc:  # broken chunk / truncated storage
+                raise self._fail(f"cannot read bag (corrupt or truncated): {_one_line(exc)}") from None
+            yield item
+
+    def _read_metadata(self) -> None:
+        conns = self._conns.get(TOPIC_METADATA)
+        problem = None
+        if not conns:
+            problem = (f"topic {TOPIC_METADATA} missing: the recording contract requires the "
+                       "metadata JSON as the first message")
+        elif conns[0].msgtype != STRING_TYPE:
+            problem = f"topic {TOPIC_METADATA} has type {conns[0].msgtype}, expected {STRING_TYPE}"
+        else:
+            first = next(self._messages(conns), None)
+            if first is None:
+                problem = f"topic {TOPIC_METADATA} holds no message"
+            else:
+                conn, _, raw = first
+                try:
+                    text = self._deser(raw, conn.msgtype).data
+                except Exception as exc:  # noqa: BLE001
+                    raise self._fail(f"{TOPIC_METADATA}: cannot decode message: {_one_line(exc)}") from None
+                try:
+                    self.metadata = parse_metadata(text, str(self.path))
+                except ContractError as exc:
+                    if self.strict:
+                        raise
+                    self.open_issues.append(Issue("error", TOPIC_METADATA, None, None,
+                                                  "metadata", str(exc)))
+        if problem is not None:
+            if self.strict:
+                raise self._fail(problem)
+            self.open_issues.append(Issue("error", TOPIC_METADATA, None, None, "metadata",
+                                          f"{self.path}: {problem}"))
+
+    def _read_topic_infos(self) -> None:
+        infos = {}
+        for topic in sorted(self._conns):
+            conns = self._conns[topic]
+            msgtype = conns[0].msgtype
+            count = sum(c.msgcount for c in conns)
+            if msgtype != SENSORBLOCK_TYPE:
+                infos[topic] = TopicInfo(topic, msgtype, count)
+                continue
+            first = next(self._messages(conns), None)
+            if first is None:
+                infos[topic] = TopicInfo(topic, msgtype, count)
+                continue
+            conn, log_ns, raw = first
+            msg = self._decode(raw, topic)
+            st = msg.header.stamp
+            stamp = st.sec * 1_000_000_000 + st.nanosec
+            nch = max(len(msg.channels), 1)
+            infos[topic] = TopicInfo(topic, msgtype, count, tuple(msg.channels), tuple(msg.units),
+                                     float(msg.sample_rate_hz), msg.header.frame_id, stamp,
+                                     log_ns - stamp, len(msg.data) // nch)
+        self.topics = infos
+
+    def close(self) -> None:
+        if self._reader is not None:
+            reader, self._reader = self._reader, None
+            try:
+                reader.close()
+            except Exception:  # noqa: BLE001 - closing a broken reader
+                pass
+
+    def __enter__(self) -> "BagReader":
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        self.close()
+        return False
+
+    # ------------------------------------------------------------------------ properties
+    def _need_open(self) -> None:
+        if self._reader is None:
+            raise UserError(f"{self.path}: BagReader is not open (use it as a context manager)")
+
+    @property
+    def storage(self) -> str:
+        self._need_open()
+        if not self._is2:
+            return "ros1"
+        p = self.path
+        if p.is_dir():
+            if any(p.glob("*.mcap")):
+                return "mcap"
+            if any(p.glob("*.db3")):
+                return "sqlite3"
+        return {".mcap": "mcap", ".db3": "sqlite3"}.get(p.suffix, "unknown")
+
+    @property
+    def sensor_topics(self) -> list[str]:
+        return [t for t, i in self.topics.items() if i.is_sensor_block]
+
+    @property
+    def start_time_s(self) -> float:
+        """Earliest header stamp of the data topics [s] (receive time of the bag if none)."""
+        return self._t0_ns() * 1e-9
+
+    def _t0_ns(self) -> int:
+        stamps = [i.first_stamp_ns for i in self.topics.values() if i.first_stamp_ns is not None]
+        return min(stamps) if stamps else self._reader.start_time
+
+    @property
+    def log_start_ns(self) -> int:
+        return self._reader.start_time
+
+    @property
+    def log_end_ns(self) -> int:
+        return self._reader.end_time
+
+    @property
+    def duration_s(self) -> float:
+        """Receive-time span of the bag [s]."""
+        return max(self._reader.end_time - self._reader.start_time, 0) * 1e-9
+
+    @property
+    def message_count(self) -> int:
+        return self._reader.message_count
+
+    # --------------------------------------------------------------------------- reading
+    def _decode(self, raw, topic: str):
+        try:
+            return self._deser(raw, SENSORBLOCK_TYPE)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(f"{topic}: cannot decode SensorBlock: {_one_line(exc)}") from None
+
+    def _select(self, topics: Iterable[str] | str | None, sensor_only: bool) -> list:
+        self._need_open()
+        if topics is None:
+            names = self.sensor_topics if sensor_only else list(self._conns)
+        else:
+            names = [topics] if isinstance(topics, str) else list(topics)
+            for t in names:
+                if t not in self._conns:
+                    raise self._fail(f"topic {t} not in bag (topics: {', '.join(sorted(self._conns))})")
+                if sensor_only and self._conns[t][0].msgtype != SENSORBLOCK_TYPE:
+                    raise self._fail(f"topic {t} has type {self._conns[t][0].msgtype}, "
+                                     f"expected {SENSORBLOCK_TYPE}")
+        return [c for t in names for c in self._conns[t]]
+
+    def _window(self, conns, start_s, duration_s):
+        """(window start ns, window end ns, log start, log stop) in absolute ns; None = open."""
+        if start_s is None and duration_s is None:
+            return None, None, None, None
+        t0 = self._t0_ns()
+        ws = t0 + int(round((start_s or 0.0) * 1e9))
+        we = None if duration_s is None else ws + int(round(duration_s * 1e9))
+        topics = {c.topic for c in conns}
+        infos = [self.topics[t] for t in topics if t in self.topics]
+        lags = [i.first_lag_ns for i in infos if i.first_lag_ns is not None] or [0]
+        block_ns = [int(i.block_samples / i.sample_rate_hz * 1e9) for i in infos
+                    if i.block_samples and i.sample_rate_hz] or [0]
+        log_start = ws + min(lags) - 4 * max(block_ns) - 1_000_000_000
+        log_stop = None if we is None else we + max(max(lags), 0) + LAG_SLACK_NS
+        return ws, we, (log_start if log_start > self._reader.start_time else None), log_stop
+
+    def iter_blocks(self, topics: Iterable[str] | str | None = None, start_s: float | None = None,
+                    duration_s: float | None = None) -> Iterator[tuple[str, Block]]:
+        """Yield (topic, Block) in receive order, one message at a time (bounded memory).
+
+        ``topics``: SensorBlock topics (default: all). With a window, blocks that overlap
+        [start_time_s + start_s, ... + duration_s) are yielded whole (not trimmed).
+        Malformed blocks raise ContractError (strict) or are skipped (strict=False).
+        """
+        conns = self._select(topics, sensor_only=True)
+        if not conns:
+            return
+        ws, we, log_start, log_stop = self._window(conns, start_s, duration_s)
+        deser = self._deser
+        cache: dict[str, tuple] = {}
+        strict = self.strict
+        for conn, _log_ns, raw in self._messages(conns, start=log_start, stop=log_stop):
+            topic = conn.topic
+            try:
+                msg = deser(raw, SENSORBLOCK_TYPE)
+            except Exception as exc:  # noqa: BLE001
+                if strict:
+                    raise self._fail(f"{topic}: cannot decode SensorBlock: {_one_line(exc)}") from None
+                continue
+            chans, units, flat = msg.channels, msg.units, msg.data
+            prev = cache.get(topic)
+            if prev is not None and prev[0] == chans and prev[1] == units:
+                ctuple, utuple = prev[2], prev[3]
+            else:
+                ctuple, utuple = tuple(chans), tuple(units)
+                cache[topic] = (chans, units, ctuple, utuple)
+            nch = len(ctuple)
+            if nch == 0 or flat.size % nch or len(utuple) != nch or not msg.sample_rate_hz > 0:
+                if strict:
+                    raise self._fail(f"{topic}: malformed SensorBlock at stamp "
+                                     f"{msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}: "
+                                     f"{flat.size} values, {nch} channels, {len(utuple)} units, "
+                                     f"rate {msg.sample_rate_hz}")
+                continue
+            st = msg.header.stamp
+            stamp = st.sec * 1_000_000_000 + st.nanosec
+            if ws is not None:
+                n = flat.size // nch
+                end = stamp + int(n / msg.sample_rate_hz * 1e9)
+                if end <= ws or (we is not None and stamp >= we):
+                    continue
+            yield topic, Block(stamp, msg.header.frame_id, msg.sample_rate_hz, ctuple, utuple,
+                               flat.reshape(-1, nch))
+
+    def iter_raw(self, topics: Iterable[str] | str | None = None, start_s: float | None = None,
+                 duration_s: float | None = None) -> Iterator[tuple[str, str, int, bytes]]:
+        """Yield (topic, msgtype, stamp_ns, raw CDR bytes) in receive order, for replay.
+
+        stamp_ns is the header stamp for SensorBlocks (and other types with a header) and the
+        receive time otherwise. ROS1 payloads are converted to CDR. ``topics``: default all,
+        metadata included. The window (as in :meth:`iter_blocks`) is applied on stamp_ns.
+        """
+        conns = self._select(topics, sensor_only=False)
+        if not conns:
+            return
+        ws, we, log_start, log_stop = self._window(conns, start_s, duration_s)
+        ts = self._reader.typestore
+        has_header = {}
+        for conn, log_ns, raw in self._messages(conns, start=log_start, stop=log_stop):
+            mt = conn.msgtype
+            if mt not in has_header:
+                fields = ts.fielddefs.get(mt, (None, []))[1]
+                has_header[mt] = bool(fields) and fields[0][0] == "header"
+            if not self._is2:
+                raw = ts.ros1_to_cdr(raw, mt)
+            stamp = log_ns
+            if has_header[mt]:
+                stamp = self._header_stamp(raw, mt, conn.topic)
+            if ws is not None and conn.topic != TOPIC_METADATA:
+                if stamp < ws - 1_000_000_000 or (we is not None and stamp >= we):
+                    continue
+            yield conn.topic, mt, stamp, bytes(raw)
+
+    @staticmethod
+    def _cdr_stamp(raw) -> int:
+        """Header stamp from CDR bytes: after the 4-byte encapsulation, int32 sec, uint32 nsec."""
+        little = bool(raw[1])
+        order = "little" if little else "big"
+        sec = int.from_bytes(bytes(raw[4:8]), order, signed=True)
+        nsec = int.from_bytes(bytes(raw[8:12]), order, signed=False)
+        return sec * 1_000_000_000 + nsec
+
+    def _header_stamp(self, raw, msgtype: str, topic: str) -> int:
+        if len(raw) < 12:
+            raise self._fail(f"{topic}: message too short for a header ({len(raw)} bytes)")
+        return self._cdr_stamp(raw)
+
+    def read_metadata_json(self) -> str | None:
+        return None if self.metadata is None else self.metadata.to_json()
+
+    def read_topic(self, topic: str, start_s: float | None = None,
+                   duration_s: float | None = None) -> ChannelData:
+        """All samples of one SensorBlock topic as arrays (float64), with sample times.
+
+        Blocks are sorted by header stamp; exact duplicates are dropped; samples of a block that
+        start before the end of the previous block (overlap) are dropped; all of it is listed in
+        ``ChannelData.issues``. Blocks whose channel list differs from the first are refused
+        (ContractError in strict mode, skipped and reported otherwise). With a window, samples
+        outside [start_time_s + start_s, + duration_s) are cut off.
+        """
+        if topic not in self.topics:
+            self._need_open()
+            raise self._fail(f"topic {topic} not in bag (topics: {', '.join(sorted(self.topics))})")
+        stamps, counts, rates, datas = [], [], [], []
+        issues: list[Issue] = []
+        channels = units = None
+        for _, blk in self.iter_blocks(topic, start_s, duration_s):
+            if channels is None:
+                channels, units = blk.channels, blk.units
+            elif blk.channels != channels or blk.units != units:
+                msg = (f"channels/units change at t={blk.stamp_s:.6f} s "
+                       f"({', '.join(blk.channels)}) vs first block ({', '.join(channels)})")
+                if self.strict:
+                    raise self._fail(f"{topic}: {msg}")
+                issues.append(Issue("error", topic, None, blk.stamp_s, "channels_changed",
+                                    msg + "; block skipped"))
+                continue
+            stamps.append(blk.stamp_ns)
+            counts.append(blk.n_samples)
+            rates.append(blk.sample_rate_hz)
+            datas.append(blk.data)
+        if channels is None:
+            info = self.topics[topic]
+            return ChannelData(topic, info.channels, info.units, info.sample_rate_hz or 0.0,
+                               np.zeros(0), np.zeros((0, len(info.channels))), tuple(issues))
+        stamps_a = np.asarray(stamps, dtype=np.int64)
+        counts_a = np.asarray(counts, dtype=np.int64)
+        rates_a = np.asarray(rates, dtype=np.float64)
+        order = np.argsort(stamps_a, kind="stable")
+        if np.any(order != np.arange(order.size)):
+            n_bad = int(np.sum(np.diff(stamps_a) < 0))
+            issues.append(Issue("warning", topic, None, float(stamps_a[np.argmax(np.diff(stamps_a) < 0) + 1]) * 1e-9,
+                                "out_of_order", f"{n_bad} block(s) out of stamp order; sorted"))
+        keep = np.ones(order.size, dtype=bool)
+        skip_head = np.zeros(order.size, dtype=np.int64)
+        prev_i = None
+        prev_end_ns = None
+        for k, i in enumerate(order):
+            if prev_i is not None:
+                if stamps_a[i] == stamps_a[prev_i] and counts_a[i] == counts_a[prev_i] \
+                        and np.array_equal(datas[i], datas[prev_i], equal_nan=True):
+                    keep[k] = False
+                    issues.append(Issue("warning", topic, None, stamps_a[i] * 1e-9, "duplicate",
+                                        "exact duplicate block dropped"))
+                    continue
+                half = 0.5e9 / rates_a[i]
+                if stamps_a[i] < prev_end_ns - half:
+                    # drop the leading samples that fall inside the previous block
+                    n_over = int(np.ceil((prev_end_ns - half - stamps_a[i]) * rates_a[i] / 1e9))
+                    n_over = min(n_over, int(counts_a[i]))
+                    skip_head[k] = n_over
+                    issues.append(Issue("warning", topic, None, stamps_a[i] * 1e-9, "overlap",
+                                        f"block overlaps the previous one by "
+                                        f"{(prev_end_ns - stamps_a[i]) * 1e-9:.6g} s; "
+                                        f"{n_over} leading sample(s) dropped"))
+                    if n_over == counts_a[i]:
+                        keep[k] = False
+                        continue
+            end = stamps_a[i] + counts_a[i] * 1e9 / rates_a[i]
+            prev_end_ns = end if prev_end_ns is None else max(prev_end_ns, end)
+            prev_i = i
+        sel = order[keep]
+        heads = skip_head[keep]
+        pieces = [datas[i][h:] if h else datas[i] for i, h in zip(sel, heads)]
+        n_per = counts_a[sel] - heads
+        data = np.concatenate(pieces, axis=0).astype(np.float64) if pieces else \
+            np.zeros((0, len(channels)))
+        # sample times without a Python loop over samples: stamp + (j + head) / rate
+        total = int(n_per.sum())
+        starts = np.concatenate(([0], np.cumsum(n_per)[:-1]))
+        idx = np.arange(total) - np.repeat(starts, n_per) + np.repeat(heads, n_per)
+        time_s = np.repeat(stamps_a[sel] * 1e-9, n_per) + idx / np.repeat(rates_a[sel], n_per)
+        if start_s is not None or duration_s is not None:
+            t0 = self._t0_ns() * 1e-9
+            ws = t0 + (start_s or 0.0)
+            m = time_s >= ws - 1e-12
+            if duration_s is not None:
+                m &= time_s < ws + duration_s - 1e-12
+            time_s, data = time_s[m], data[m]
+        if len(set(rates_a[sel].tolist())) > 1:
+            issues.append(Issue("warning", topic, None, None, "rate_change",
+                                f"sample rate varies between blocks: "
+                                f"{sorted(set(rates_a[sel].tolist()))} Hz"))
+        bad = ~np.isfinite(data)
+        if bad.any():
+            rows, cols = np.nonzero(bad)
+            for c in np.unique(cols):
+                r = rows[cols == c]
+                msg = f"{r.size} NaN/inf sample(s), first at t={time_s[r[0]]:.6f} s"
+                if self.strict:
+                    raise self._fail(f"{topic} [{channels[c]}]: {msg}")
+                issues.append(Issue("error", topic, channels[c], float(time_s[r[0]]), "nan", msg))
+        rate = Counter(rates_a[sel].tolist()).most_common(1)[0][0] if sel.size else rates_a[0]
+        return ChannelData(topic, channels, units, float(rate), time_s, data, tuple(issues))
+
+    # ---------------------------------------------------------------------------- checks
+    def check(self) -> list[Issue]:
+        """Stream over the bag and list every contract problem (see module docstring)."""
+        self._need_open()
+        issues: list[Issue] = list(self.open_issues)
+        per_kind: Counter = Counter()
+        overflow: Counter = Counter()
+
+        def add(issue: Issue) -> None:
+            key = (issue.topic, issue.kind)
+            per_kind[key] += 1
+            if per_kind[key] <= MAX_ISSUES_PER_KIND:
+                issues.append(issue)
+            else:
+                overflow[key] += 1
+
+        known = set(self.metadata.sensors) if self.metadata is not None else None
+        recorded: set[str] = set()
+        conns = self._select(None, sensor_only=True)
+        # per topic: list of (stamp_ns, n_samples, rate, digest)
+        recs: dict[str, list] = defaultdict(list)
+        seen_lists: dict[str, set] = defaultdict(set)
+        nan_stats: dict[tuple, list] = {}
+        deser = self._deser
+        for conn, _log_ns, raw in self._messages(conns):
+            topic = conn.topic
+            try:
+                msg = deser(raw, SENSORBLOCK_TYPE)
+            except Exception as exc:  # noqa: BLE001
+                add(Issue("error", topic, None, None, "undecodable", f"cannot decode: {_one_line(exc)}"))
+                continue
+            st = msg.header.stamp
+            stamp = st.sec * 1_000_000_000 + st.nanosec
+            t_s = stamp * 1e-9
+            chans, units = tuple(msg.channels), tuple(msg.units)
+            flat = msg.data
+            rate = float(msg.sample_rate_hz)
+            nch = len(chans)
+            key = (chans, units)
+            if key not in seen_lists[topic]:
+                seen_lists[topic].add(key)
+                if len(seen_lists[topic]) > 1:
+                    add(Issue("warning", topic, None, t_s, "channels_changed",
+                              f"channel/unit list changed to {list(chans)} / {list(units)}"))
+                if len(units) != nch:
+                    add(Issue("error", topic, None, t_s, "units_mismatch",
+                              f"{nch} channels but {len(units)} units"))
+                for ui in check_units(topic, chans, units[:nch], t_s):
+                    add(ui)
+                for ch in chans:
+                    recorded.add(ch)
+                    if known is not None and ch not in known:
+                        add(Issue("warning", topic, ch, t_s, "unknown_channel",
+                                  f"channel {ch!r} is not listed in metadata sensors"))
+                    elif known is not None and self.metadata.sensors[ch].topic != topic:
+                        add(Issue("warning", topic, ch, t_s, "wrong_topic",
+                                  f"metadata lists channel {ch!r} on "
+                                  f"{self.metadata.sensors[ch].topic}"))
+            if nch == 0 or flat.size % nch:
+                add(Issue("error", topic, None, t_s, "data_length",
+                          f"{flat.size} values is not a multiple of {nch} channels"))
+                continue
+            if not rate > 0 or not np.isfinite(rate):
+                add(Issue("error", topic, None, t_s, "bad_rate", f"sample_rate_hz {rate!r}"))
+                continue
+            data = flat.reshape(-1, nch)
+            fin = np.isfinite(data)
+            if not fin.all():
+                bad_cols = np.nonzero(~fin.all(axis=0))[0]
+                for c in bad_cols:
+                    rows = np.nonzero(~fin[:, c])[0]
+                    k = (topic, chans[c])
+                    if k not in nan_stats:
+                        nan_stats[k] = [t_s + rows[0] / rate, 0, 0]
+                    else:
+                        nan_stats[k][0] = min(nan_stats[k][0], t_s + rows[0] / rate)
+                    nan_stats[k][1] += rows.size
+                    nan_stats[k][2] += 1
+            digest = hashlib.blake2b(flat.tobytes(), digest_size=8).digest()
+            recs[topic].append((stamp, data.shape[0], rate, digest))
+
+        for (topic, ch), (t_first, n, nb) in nan_stats.items():
+            add(Issue("error", topic, ch, t_first, "nan",
+                      f"{n} NaN/inf sample(s) in {nb} block(s), first at t={t_first:.6f} s"))
+        for topic, rec in recs.items():
+            self._check_timing(topic, rec, add)
+        if known is not None:
+            for sid, s in self.metadata.sensors.items():
+                if s.topic in self.topics and sid not in recorded:
+                    add(Issue("warning", s.topic, sid, None, "missing_channel",
+                              f"metadata sensor {sid!r} is not recorded on {s.topic}"))
+        for (topic, kind), n in overflow.items():
+            issues.append(Issue("warning", topic, None, None, kind,
+                                f"... and {n} more '{kind}' issue(s) on this topic"))
+        return issues
+
+    @staticmethod
+    def _check_timing(topic: str, rec: list, add) -> None:
+        stamps = np.array([r[0] for r in rec], dtype=np.int64)
+        # out-of-order: a stamp below the running maximum (in receive order)
+        runmax = np.maximum.accumulate(stamps)
+        for i in np.nonzero(stamps[1:] < runmax[:-1])[0] + 1:
+            add(Issue("warning", topic, None, stamps[i] * 1e-9, "out_of_order",
+                      f"block stamped {stamps[i] * 1e-9:.6f} s arrives after one stamped "
+                      f"{runmax[i - 1] * 1e-9:.6f} s"))
+        order = sorted(range(len(rec)), key=lambda i: (rec[i][0], i))
+        prev = None
+        for i in order:
+            stamp, n, rate, digest = rec[i]
+            if prev is not None:
+                pstamp, pn, prate, pdigest = prev
+                if rate != prate:
+                    add(Issue("warning", topic, None, stamp * 1e-9, "rate_change",
+                              f"sample rate changes from {prate:g} Hz to {rate:g} Hz"))
+                if stamp == pstamp and n == pn and digest == pdigest:
+                    add(Issue("warning", topic, None, stamp * 1e-9, "duplicate",
+                              "duplicate block (same stamp and data)"))
+                    continue
+                expected = pstamp + pn * 1e9 / prate
+                half = 0.5e9 / prate
+                if stamp > expected + half:
+                    add(Issue("warning", topic, None, expected * 1e-9, "gap",
+                              f"gap of {(stamp - expected) * 1e-9:.6g} s "
+                              f"(~{(stamp - expected) * prate / 1e9:.0f} samples missing) "
+                              f"before block at {stamp * 1e-9:.6f} s"))
+                elif stamp < expected - half:
+                    add(Issue("warning", topic, None, stamp * 1e-9, "overlap",
+                              f"block starts {(expected - stamp) * 1e-9:.6g} s before the "
+                              f"previous block ends"))
+            prev = (stamp, n, rate, digest)

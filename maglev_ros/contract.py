@@ -1,0 +1,372 @@
+"""The test-line recording contract, version 1 (/work/shared/contract/RECORDING.md).
+
+Topic names, the metadata JSON (``/testline/metadata``) parsed and validated into a
+:class:`Metadata`, unit checks, and the :class:`Issue` record that contract checks report.
+
+Validation is hand-written rather than done with a JSON-schema library: the contract asks for
+one-line errors that name the bag and the exact key path, which generic validators do not give.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from maglev_ros.errors import ContractError
+
+__all__ = [
+    "CONTRACT_SCHEMA", "TOPIC_METADATA", "TOPIC_GUIDEWAY_ACCEL", "TOPIC_GUIDEWAY_DISP",
+    "TOPIC_VEHICLE_ACCEL", "TOPIC_VEHICLE_GAP", "TOPIC_VEHICLE_POSITION", "DATA_TOPICS",
+    "SENSORBLOCK_TYPE", "STRING_TYPE", "SI_UNITS", "NON_SI_UNITS", "TOPIC_UNITS",
+    "Span", "Sensor", "Metadata", "Issue", "parse_metadata", "metadata_from_dict",
+    "unit_conversion", "is_si_unit", "check_units",
+]
+
+CONTRACT_SCHEMA = "maglev-testline/1"
+
+TOPIC_METADATA = "/testline/metadata"
+TOPIC_GUIDEWAY_ACCEL = "/testline/guideway/accel"
+TOPIC_GUIDEWAY_DISP = "/testline/guideway/displacement"
+TOPIC_VEHICLE_ACCEL = "/testline/vehicle/accel"
+TOPIC_VEHICLE_GAP = "/testline/vehicle/gap"
+TOPIC_VEHICLE_POSITION = "/testline/vehicle/position"
+DATA_TOPICS = (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
+               TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION)
+
+SENSORBLOCK_TYPE = "maglev_msgs/msg/SensorBlock"
+STRING_TYPE = "std_msgs/msg/String"
+
+#: Unit strings accepted as SI (base or coherent derived units, "1" for dimensionless).
+SI_UNITS = frozenset({
+    "m/s^2", "m", "m/s", "rad", "rad/s", "rad/s^2", "s", "Hz", "N", "Pa", "A", "V", "T",
+    "kg", "K", "W", "N/m", "1",
+})
+
+#: Common non-SI unit strings: unit -> (SI unit, factor); value_si = value * factor.
+NON_SI_UNITS: dict[str, tuple[str, float]] = {
+    "g": ("m/s^2", 9.80665),
+    "mg": ("m/s^2", 9.80665e-3),
+    "mm/s^2": ("m/s^2", 1e-3),
+    "cm/s^2": ("m/s^2", 1e-2),
+    "gal": ("m/s^2", 1e-2),
+    "ft/s^2": ("m/s^2", 0.3048),
+    "mm": ("m", 1e-3),
+    "cm": ("m", 1e-2),
+    "um": ("m", 1e-6),
+    "µm": ("m", 1e-6),
+    "km": ("m", 1e3),
+    "in": ("m", 0.0254),
+    "ft": ("m", 0.3048),
+    "mm/s": ("m/s", 1e-3),
+    "cm/s": ("m/s", 1e-2),
+    "km/h": ("m/s", 1.0 / 3.6),
+    "kmh": ("m/s", 1.0 / 3.6),
+    "mph": ("m/s", 0.44704),
+    "deg": ("rad", math.pi / 180.0),
+    "kN": ("N", 1e3),
+    "kPa": ("Pa", 1e3),
+    "MPa": ("Pa", 1e6),
+    "mA": ("A", 1e-3),
+    "ms": ("s", 1e-3),
+    "kHz": ("Hz", 1e3),
+}
+
+#: SI unit the contract expects on each data topic (position: per channel).
+TOPIC_UNITS: dict[str, str] = {
+    TOPIC_GUIDEWAY_ACCEL: "m/s^2",
+    TOPIC_GUIDEWAY_DISP: "m",
+    TOPIC_VEHICLE_ACCEL: "m/s^2",
+    TOPIC_VEHICLE_GAP: "m",
+}
+POSITION_CHANNEL_UNITS = {"position_m": "m", "speed_mps": "m/s"}
+
+_SIDES = ("left", "right", "center")
+_DIRECTIONS = ("vertical", "lateral")
+_RUN_KINDS = ("pass", "ambient")
+
+
+@dataclass(frozen=True)
+class Issue:
+    """One contract problem found in a bag.
+
+    severity: "error" (the data cannot be trusted as is) or "warning".
+    time_s: stream time where it happens (header stamp, seconds), or None.
+    kind: short machine-readable name (e.g. "gap", "nan", "non_si_unit").
+    """
+
+    severity: str
+    topic: str | None
+    channel: str | None
+    time_s: float | None
+    kind: str
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"severity": self.severity, "topic": self.topic, "channel": self.channel,
+                "time_s": self.time_s, "kind": self.kind, "message": self.message}
+
+    def __str__(self) -> str:
+        where = self.topic or ""
+        if self.channel:
+            where += f" [{self.channel}]"
+        at = "" if self.time_s is None else f" at t={self.time_s:.6f} s"
+        return f"{self.severity}: {self.kind}: {where}{at}: {self.message}"
+
+
+@dataclass(frozen=True)
+class Span:
+    """One guideway span of ``line.spans``; ``extra`` holds any other keys (e.g. design overrides)."""
+
+    id: str
+    start_m: float
+    length_m: float
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def end_m(self) -> float:
+        return self.start_m + self.length_m
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """One entry of ``sensors``: the channel id and where it is."""
+
+    id: str
+    topic: str
+    quantity: str | None = None
+    direction: str | None = None
+    span: str | None = None
+    position_m: float | None = None
+    side: str | None = None
+    magnet: int | None = None
+    raw: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Metadata:
+    """Validated metadata of a recording. ``raw`` is the whole JSON document (unknown keys kept)."""
+
+    raw: Mapping[str, Any]
+    source: str = "<metadata>"
+
+    @property
+    def schema(self) -> str:
+        return self.raw["schema"]
+
+    @property
+    def description(self) -> str:
+        return str(self.raw.get("description", ""))
+
+    @property
+    def spans(self) -> tuple[Span, ...]:
+        out = []
+        for s in self.raw["line"]["spans"]:
+            extra = {k: v for k, v in s.items() if k not in ("id", "start_m", "length_m")}
+            out.append(Span(str(s["id"]), float(s["start_m"]), float(s["length_m"]), extra))
+        return tuple(out)
+
+    @property
+    def sensors(self) -> dict[str, Sensor]:
+        out = {}
+        for sid, s in self.raw["sensors"].items():
+            out[sid] = Sensor(
+                id=sid, topic=s["topic"], quantity=s.get("quantity"),
+                direction=s.get("direction"), span=s.get("span"),
+                position_m=None if s.get("position_m") is None else float(s["position_m"]),
+                side=s.get("side"),
+                magnet=None if s.get("magnet") is None else int(s["magnet"]), raw=s)
+        return out
+
+    def sensors_on_topic(self, topic: str) -> dict[str, Sensor]:
+        """Sensors recorded on ``topic``, in metadata order (id -> Sensor)."""
+        return {k: v for k, v in self.sensors.items() if v.topic == topic}
+
+    @property
+    def vehicle(self) -> dict:
+        return dict(self.raw.get("vehicle") or {})
+
+    @property
+    def magnet_offsets_m(self) -> tuple[float, ...]:
+        return tuple(float(x) for x in self.vehicle.get("magnet_offsets_m", ()))
+
+    @property
+    def nominal_gap_m(self) -> float | None:
+        g = self.vehicle.get("nominal_gap_m")
+        return None if g is None else float(g)
+
+    @property
+    def run(self) -> dict:
+        return dict(self.raw["run"])
+
+    @property
+    def run_kind(self) -> str:
+        return self.raw["run"]["kind"]
+
+    @property
+    def nominal_speed_mps(self) -> float | None:
+        v = self.raw["run"].get("nominal_speed_mps")
+        return None if v is None else float(v)
+
+    @property
+    def design(self) -> dict | None:
+        d = self.raw.get("design")
+        return None if d is None else dict(d)
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(self.raw))
+
+    def to_json(self) -> str:
+        return json.dumps(self.raw, sort_keys=False)
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def metadata_from_dict(doc: Any, source: str) -> Metadata:
+    """Validate a metadata document (already parsed JSON) and wrap it in :class:`Metadata`.
+
+    Raises ContractError "<source>: metadata key <path>: <what is wrong>" on the first problem.
+    """
+    def fail(path: str, what: str) -> ContractError:
+        return ContractError(f"{source}: metadata key {path}: {what}")
+
+    def need(obj: Mapping, key: str, path: str) -> Any:
+        if key not in obj:
+            raise fail(path, "missing (required by the recording contract)")
+        return obj[key]
+
+    if not isinstance(doc, dict):
+        raise ContractError(f"{source}: metadata must be a JSON object, got {type(doc).__name__}")
+    schema = need(doc, "schema", "schema")
+    if schema != CONTRACT_SCHEMA:
+        raise fail("schema", f"expected {CONTRACT_SCHEMA!r}, got {schema!r}")
+    line = need(doc, "line", "line.spans")
+    if not isinstance(line, dict):
+        raise fail("line", "expected an object")
+    spans = need(line, "spans", "line.spans")
+    if not isinstance(spans, list):
+        raise fail("line.spans", "expected a list of spans")
+    span_ids = set()
+    for i, s in enumerate(spans):
+        p = f"line.spans[{i}]"
+        if not isinstance(s, dict):
+            raise fail(p, "expected an object")
+        sid = need(s, "id", f"{p}.id")
+        if not isinstance(sid, str) or not sid:
+            raise fail(f"{p}.id", f"expected a non-empty string, got {sid!r}")
+        span_ids.add(sid)
+        for key in ("start_m", "length_m"):
+            v = need(s, key, f"{p}.{key}")
+            if not _is_number(v):
+                raise fail(f"{p}.{key}", f"expected a finite number, got {v!r}")
+        if s["length_m"] <= 0:
+            raise fail(f"{p}.length_m", f"expected > 0, got {s['length_m']!r}")
+
+    sensors = need(doc, "sensors", "sensors")
+    if not isinstance(sensors, dict):
+        raise fail("sensors", "expected an object mapping channel id -> sensor")
+    for sid, s in sensors.items():
+        p = f"sensors.{sid}"
+        if not isinstance(s, dict):
+            raise fail(p, "expected an object")
+        topic = need(s, "topic", f"{p}.topic")
+        if not isinstance(topic, str) or not topic.startswith("/"):
+            raise fail(f"{p}.topic", f"expected a topic name, got {topic!r}")
+        if s.get("position_m") is not None and not _is_number(s["position_m"]):
+            raise fail(f"{p}.position_m", f"expected a finite number, got {s['position_m']!r}")
+        if s.get("side") is not None and s["side"] not in _SIDES:
+            raise fail(f"{p}.side", f"expected one of {', '.join(_SIDES)}, got {s['side']!r}")
+        if s.get("direction") is not None and s["direction"] not in _DIRECTIONS:
+            raise fail(f"{p}.direction",
+                       f"expected one of {', '.join(_DIRECTIONS)}, got {s['direction']!r}")
+        if s.get("span") is not None and span_ids and s["span"] not in span_ids:
+            raise fail(f"{p}.span", f"span {s['span']!r} is not listed in line.spans")
+        mag = s.get("magnet")
+        if mag is not None and (not isinstance(mag, int) or isinstance(mag, bool) or mag < 1):
+            raise fail(f"{p}.magnet", f"expected a 1-based magnet number, got {mag!r}")
+
+    run = need(doc, "run", "run.kind")
+    if not isinstance(run, dict):
+        raise fail("run", "expected an object")
+    kind = need(run, "kind", "run.kind")
+    if kind not in _RUN_KINDS:
+        raise fail("run.kind", f"expected one of {', '.join(_RUN_KINDS)}, got {kind!r}")
+    if run.get("nominal_speed_mps") is not None and not _is_number(run["nominal_speed_mps"]):
+        raise fail("run.nominal_speed_mps", f"expected a number, got {run['nominal_speed_mps']!r}")
+
+    vehicle = doc.get("vehicle")
+    if vehicle is not None and not isinstance(vehicle, dict):
+        raise fail("vehicle", "expected an object")
+    if kind == "pass":
+        if vehicle is None:
+            raise fail("vehicle.magnet_offsets_m", "missing (required for run.kind 'pass')")
+        offs = need(vehicle, "magnet_offsets_m", "vehicle.magnet_offsets_m")
+        if not isinstance(offs, list) or not offs or not all(_is_number(x) for x in offs):
+            raise fail("vehicle.magnet_offsets_m", f"expected a non-empty list of numbers, got {offs!r}")
+        for sid, s in sensors.items():
+            mag = s.get("magnet")
+            if mag is not None and mag > len(offs):
+                raise fail(f"sensors.{sid}.magnet",
+                           f"magnet {mag} but vehicle.magnet_offsets_m lists {len(offs)} magnets")
+    if vehicle is not None and vehicle.get("nominal_gap_m") is not None:
+        g = vehicle["nominal_gap_m"]
+        if not _is_number(g) or g <= 0:
+            raise fail("vehicle.nominal_gap_m", f"expected a positive number, got {g!r}")
+    design = doc.get("design")
+    if design is not None and not isinstance(design, dict):
+        raise fail("design", "expected an object")
+    return Metadata(raw=doc, source=source)
+
+
+def parse_metadata(text: str | bytes, source: str) -> Metadata:
+    """Parse the metadata JSON text of a recording; ``source`` names the bag in errors."""
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", errors="replace")
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ContractError(f"{source}: metadata is not valid JSON ({exc.msg} at line {exc.lineno} "
+                            f"column {exc.colno})") from None
+    return metadata_from_dict(doc, source)
+
+
+# ----------------------------------------------------------------------------------- units
+def is_si_unit(unit: str) -> bool:
+    return unit in SI_UNITS
+
+
+def unit_conversion(unit: str) -> tuple[str, float] | None:
+    """(SI unit, factor) for a known non-SI unit string, None when unknown (or already SI)."""
+    if unit in SI_UNITS:
+        return unit, 1.0
+    return NON_SI_UNITS.get(unit)
+
+
+def expected_unit(topic: str, channel: str) -> str | None:
+    """The SI unit the contract prescribes for ``channel`` on ``topic`` (None: no rule)."""
+    if topic == TOPIC_VEHICLE_POSITION:
+        return POSITION_CHANNEL_UNITS.get(channel)
+    return TOPIC_UNITS.get(topic)
+
+
+def check_units(topic: str, channels: tuple[str, ...] | list[str],
+                units: tuple[str, ...] | list[str], time_s: float | None = None) -> list[Issue]:
+    """Unit problems of one block's channel list: non-SI strings and units wrong for the topic."""
+    issues = []
+    for ch, u in zip(channels, units):
+        if u not in SI_UNITS:
+            conv = NON_SI_UNITS.get(u)
+            if conv is not None:
+                msg = (f"unit {u!r} is not SI; expected {conv[0]!r} "
+                       f"(multiply by {conv[1]:.9g} to convert)")
+            else:
+                msg = f"unit {u!r} is not a known SI unit string (accepted: {', '.join(sorted(SI_UNITS))})"
+            issues.append(Issue("warning", topic, ch, time_s, "non_si_unit", msg))
+            continue
+        want = expected_unit(topic, ch)
+        if want is not None and u != want:
+            issues.append(Issue("warning", topic, ch, time_s, "unit_mismatch",
+                                f"unit {u!r} but the contract expects {want!r} on this topic"))
+    return issues

@@ -1,0 +1,255 @@
+"""Guideway: Euler-Bernoulli FE beams over the spans of a line, elastic bearings, modal analysis.
+
+Each span of ``line.spans`` is one girder, simply supported on a vertical elastic bearing of
+stiffness ``kb`` at each end (kb = inf: rigid support, the vertical DOF is removed), free in
+rotation at the ends. Spans do not share nodes (independent girders, as on the Shanghai line).
+Elements are Hermite-cubic beams with consistent mass (vertical bending only; a 3D beam with
+lateral bending and torsion is not implemented). Damping is Rayleigh, C = a M + b K, with
+``damping_ratio`` on the first two modes of each span; in modal coordinates it is diagonal with
+zeta_j = a / (2 w_j) + b w_j / 2.
+
+Hand-written because the FE model is ~40 DOF per span: a full FE package (and its meshing) would
+add far more than the 30 lines of element matrices used here; eigenproblems use scipy.linalg.eigh.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.linalg import eigh
+
+from maglev_ros.errors import UserError
+from maglev_ros.twin.design import SpanSpec
+
+
+def hermite(xi: np.ndarray, le: float) -> np.ndarray:
+    """Hermite cubic shape functions at local coordinate xi in [0, 1]: (..., 4) for DOFs
+    (w_i, theta_i, w_j, theta_j); theta = dw/dx."""
+    xi = np.asarray(xi, dtype=float)
+    xi2, xi3 = xi * xi, xi * xi * xi
+    return np.stack([1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3,
+                     le * (-xi2 + xi3)], axis=-1)
+
+
+def hermite_dx(xi: np.ndarray, le: float) -> np.ndarray:
+    """d/dx of ``hermite`` (slopes): (..., 4)."""
+    xi = np.asarray(xi, dtype=float)
+    xi2 = xi * xi
+    return np.stack([(-6 * xi + 6 * xi2) / le, 1 - 4 * xi + 3 * xi2, (6 * xi - 6 * xi2) / le,
+                     -2 * xi + 3 * xi2], axis=-1)
+
+
+def beam_element(ei_n_m2: float, m_kg_m: float, le: float) -> tuple[np.ndarray, np.ndarray]:
+    """Element stiffness and consistent mass (4x4) of an Euler-Bernoulli beam element."""
+    l2 = le * le
+    k = ei_n_m2 / le ** 3 * np.array([[12, 6 * le, -12, 6 * le], [6 * le, 4 * l2, -6 * le, 2 * l2],
+                                      [-12, -6 * le, 12, -6 * le], [6 * le, 2 * l2, -6 * le, 4 * l2]])
+    m = m_kg_m * le / 420.0 * np.array([[156, 22 * le, 54, -13 * le], [22 * le, 4 * l2, 13 * le, -3 * l2],
+                                        [54, 13 * le, 156, -22 * le], [-13 * le, -3 * l2, -22 * le, 4 * l2]])
+    return k, m
+
+
+@dataclass(frozen=True)
+class SpanFE:
+    """Assembled FE model of one span on its bearings (free DOFs only)."""
+    span: SpanSpec
+    n_elements: int
+    mass: np.ndarray            # (n, n)
+    stiffness: np.ndarray       # (n, n)
+    free_dofs: np.ndarray       # indices into the full nodal DOF list (w0, th0, w1, th1, ...)
+    rayleigh_a: float           # C = a M + b K
+    rayleigh_b: float
+
+    @property
+    def element_length_m(self) -> float:
+        return self.span.length_m / self.n_elements
+
+    @property
+    def damping(self) -> np.ndarray:
+        return self.rayleigh_a * self.mass + self.rayleigh_b * self.stiffness
+
+    def _interp(self, x_m: np.ndarray, deriv: bool) -> np.ndarray:
+        """(len(x), n_free) matrix mapping free DOFs to w(x) (or dw/dx) for x inside the span."""
+        x = np.atleast_1d(np.asarray(x_m, dtype=float)) - self.span.start_m
+        le = self.element_length_m
+        e = np.clip(np.floor(x / le).astype(int), 0, self.n_elements - 1)
+        xi = x / le - e
+        n = (hermite_dx if deriv else hermite)(xi, le)
+        full = np.zeros((x.size, 2 * (self.n_elements + 1)))
+        rows = np.arange(x.size)
+        for a in range(4):
+            full[rows, 2 * e + a] = n[:, a]
+        inside = (x >= -1e-12) & (x <= self.span.length_m + 1e-12)
+        full[~inside] = 0.0
+        return full[:, self.free_dofs]
+
+    def shape_matrix(self, x_m) -> np.ndarray:
+        return self._interp(x_m, False)
+
+    def slope_matrix(self, x_m) -> np.ndarray:
+        return self._interp(x_m, True)
+
+    def static_displacement(self, load_x_m: Sequence[float], load_n: Sequence[float], x_m) -> np.ndarray:
+        """Static vertical displacement at ``x_m`` under point loads (positive up)."""
+        f = self.shape_matrix(load_x_m).T @ np.asarray(load_n, dtype=float)
+        u = np.linalg.solve(self.stiffness, f)
+        return self.shape_matrix(x_m) @ u
+
+    def eig(self) -> tuple[np.ndarray, np.ndarray]:
+        """Circular frequencies (rad/s, ascending) and mass-normalised modes (free DOFs)."""
+        w2, phi = eigh(self.stiffness, self.mass)
+        w2 = np.clip(w2, 0.0, None)
+        # sign: largest nodal displacement positive
+        wd = phi[self._w_rows()]
+        idx = np.argmax(np.abs(wd), axis=0)
+        sgn = np.sign(wd[idx, np.arange(phi.shape[1])])
+        sgn[sgn == 0] = 1.0
+        return np.sqrt(w2), phi * sgn
+
+    def _w_rows(self) -> np.ndarray:
+        return np.flatnonzero(self.free_dofs % 2 == 0)
+
+
+def assemble_span(span: SpanSpec, n_elements: int = 16) -> SpanFE:
+    """FE model of one span on its two vertical bearings, with Rayleigh damping on modes 1-2."""
+    if n_elements < 2:
+        raise UserError(f"n_elements_per_span: expected >= 2, got {n_elements}")
+    p = span.props
+    le = span.length_m / n_elements
+    ke, me = beam_element(p.bending_stiffness_n_m2, p.mass_per_length_kg_m, le)
+    ndof = 2 * (n_elements + 1)
+    K = np.zeros((ndof, ndof))
+    M = np.zeros((ndof, ndof))
+    for e in range(n_elements):
+        s = slice(2 * e, 2 * e + 4)
+        K[s, s] += ke
+        M[s, s] += me
+    kb = p.bearing_stiffness_n_per_m
+    ends = (0, 2 * n_elements)
+    if math.isinf(kb):
+        free = np.array([i for i in range(ndof) if i not in ends])
+    else:
+        free = np.arange(ndof)
+        for i in ends:
+            K[i, i] += kb
+    K = K[np.ix_(free, free)]
+    M = M[np.ix_(free, free)]
+    w2 = eigh(K, M, eigvals_only=True, subset_by_index=[0, 1])
+    w1, w2_ = np.sqrt(np.clip(w2, 1e-12, None))
+    z = p.damping_ratio
+    a = 2 * z * w1 * w2_ / (w1 + w2_)
+    b = 2 * z / (w1 + w2_)
+    return SpanFE(span, n_elements, M, K, free, a, b)
+
+
+def _inside(x: np.ndarray, sp: SpanSpec, last: bool) -> np.ndarray:
+    """x on span ``sp``: half-open [start, end) so a point on a joint loads one span only."""
+    return (x >= sp.start_m) & ((x < sp.end_m) | (last & (x <= sp.end_m)))
+
+
+@dataclass(frozen=True)
+class ModalBasis:
+    """Truncated modal model of the whole line: each mode lives on one span (zero elsewhere).
+
+    q_j'' + 2 zeta_j w_j q_j' + w_j^2 q_j = phi_j(x)^T f, w(x, t) = sum_j phi_j(x) q_j(t),
+    with phi_j mass-normalised (generalised mass 1 kg).
+    """
+    freq_hz: np.ndarray            # (nm,)
+    damping_ratio: np.ndarray      # (nm,)
+    span_index: np.ndarray         # (nm,) span each mode belongs to
+    spans_fe: tuple[SpanFE, ...]
+    vectors: tuple[np.ndarray, ...]  # per span: (n_free, n_modes_of_span)
+
+    @property
+    def omega_rad_s(self) -> np.ndarray:
+        return 2 * np.pi * self.freq_hz
+
+    @property
+    def n_modes(self) -> int:
+        return int(self.freq_hz.size)
+
+    def _eval(self, x_m, deriv: bool) -> np.ndarray:
+        x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
+        out = np.zeros((x.size, self.n_modes))
+        col = 0
+        for fe, vec in zip(self.spans_fe, self.vectors):
+            nmod = vec.shape[1]
+            sp = fe.span
+            inside = _inside(x, sp, last=(fe is self.spans_fe[-1]))
+            if nmod and inside.any():
+                mat = fe.slope_matrix(x[inside]) if deriv else fe.shape_matrix(x[inside])
+                out[np.flatnonzero(inside), col:col + nmod] = mat @ vec
+            col += nmod
+        return out
+
+    def shapes_at(self, x_m) -> np.ndarray:
+        """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans."""
+        return self._eval(x_m, False)
+
+    def slopes_at(self, x_m) -> np.ndarray:
+        """d phi_j / dx at x: (len(x), n_modes)."""
+        return self._eval(x_m, True)
+
+
+class Guideway:
+    """FE guideway over ``spans`` (from ``design.line_spans``)."""
+
+    def __init__(self, spans: Sequence[SpanSpec], n_elements_per_span: int = 16):
+        if not spans:
+            raise UserError("line.spans: expected at least one span")
+        self.spans = tuple(spans)
+        self.n_elements_per_span = int(n_elements_per_span)
+        self.spans_fe = tuple(assemble_span(s, self.n_elements_per_span) for s in self.spans)
+
+    @property
+    def start_m(self) -> float:
+        return self.spans[0].start_m
+
+    @property
+    def end_m(self) -> float:
+        return max(s.end_m for s in self.spans)
+
+    def span_at(self, x_m: float) -> int | None:
+        for i, s in enumerate(self.spans):
+            if s.start_m <= x_m <= s.end_m:
+                return i
+        return None
+
+    def frequencies_hz(self, span_index: int = 0, n_modes: int = 4) -> np.ndarray:
+        w, _ = self.spans_fe[span_index].eig()
+        return w[:n_modes] / (2 * np.pi)
+
+    def modes(self, cutoff_hz: float = 300.0, min_modes_per_span: int = 2,
+              max_modes_per_span: int | None = None) -> ModalBasis:
+        """Modes of every span below ``cutoff_hz`` (at least ``min_modes_per_span``)."""
+        freqs, zetas, owner, vecs = [], [], [], []
+        for i, fe in enumerate(self.spans_fe):
+            w, phi = fe.eig()
+            f = w / (2 * np.pi)
+            n = max(int(np.sum(f <= cutoff_hz)), min_modes_per_span)
+            if max_modes_per_span is not None:
+                n = min(n, max_modes_per_span)
+            n = min(n, w.size)
+            freqs.append(f[:n])
+            zetas.append(fe.rayleigh_a / (2 * w[:n]) + fe.rayleigh_b * w[:n] / 2)
+            owner.append(np.full(n, i))
+            vecs.append(phi[:, :n])
+        return ModalBasis(np.concatenate(freqs), np.concatenate(zetas), np.concatenate(owner),
+                          self.spans_fe, tuple(vecs))
+
+    def static_displacement(self, load_x_m: Sequence[float], load_n: Sequence[float], x_m) -> np.ndarray:
+        """Static displacement (positive up) at ``x_m`` under vertical point loads (positive up)."""
+        lx = np.atleast_1d(np.asarray(load_x_m, dtype=float))
+        lp = np.atleast_1d(np.asarray(load_n, dtype=float))
+        x = np.atleast_1d(np.asarray(x_m, dtype=float))
+        out = np.zeros(x.size)
+        for fe in self.spans_fe:
+            sp = fe.span
+            last = fe is self.spans_fe[-1]
+            sel = _inside(lx, sp, last)
+            xs = _inside(x, sp, last)
+            if sel.any() and xs.any():
+                out[xs] += fe.static_displacement(lx[sel], lp[sel], x[xs])
+        return out

@@ -16,8 +16,9 @@ Parameters (``--ros-args -p name:=value`` or ``--params-file``):
   wait_timeout_s (float, 10)     ... subscribers, at most this long
   linger_s (float, 0.5)          keep the node alive this long after the last message
 
-Timing follows the bag's receive times (like ``ros2 bag play``); the messages themselves are
-published as the recorded CDR bytes, never deserialised. The metadata topic is latched
+Timing follows the messages' header stamps (the contract's time truth; a block goes out at
+the stamp of its first sample, in the bag's receive order, and /clock carries the same times);
+the messages themselves are published as the recorded CDR bytes, never deserialised. The metadata topic is latched
 (transient local). Pause/resume: services ``~/set_paused`` (std_srvs/SetBool) and
 ``~/toggle_pause`` (std_srvs/Trigger), or the space bar when run in a terminal (q quits).
 """
@@ -177,16 +178,18 @@ def replay(node: ReplayNode, executor) -> None:
             raise UserError(f"{node.bag}: no topic {missing[0]} in the bag "
                             f"(topics: {', '.join(sorted(available))})")
         data_topics = [t for t in (node.topics or sorted(available)) if t != TOPIC_METADATA]
-        t_start_ns, t_end_ns = reader.time_range_ns()
-        window_start = t_start_ns + int(node.start_offset_s * 1e9)
-        window_end = t_end_ns if node.duration_s <= 0 else min(
-            t_end_ns, window_start + int(node.duration_s * 1e9))
-        total_s = max(0.0, (window_end - window_start) * 1e-9)
+        t0_ns = int(round(reader.start_time_s * 1e9))
+        window_start = t0_ns + int(node.start_offset_s * 1e9)
+        total_s = max(0.0, reader.duration_s - node.start_offset_s)
+        if node.duration_s > 0:
+            total_s = min(total_s, node.duration_s)
+        window = dict(start_s=node.start_offset_s or None,
+                      duration_s=node.duration_s if node.duration_s > 0 else None)
 
-        meta = reader.metadata_raw()
-        if meta is not None:
-            msgtype, cdr = meta
-            node.publisher_for(TOPIC_METADATA, msgtype).publish(cdr)
+        if TOPIC_METADATA in available:
+            for topic, msgtype, _, cdr in reader.iter_raw(topics=[TOPIC_METADATA]):
+                node.publisher_for(topic, msgtype).publish(cdr)
+                break
         for t in data_topics:
             node.publisher_for(t, reader.topics[t].msgtype)
         _wait_for_subscribers(node, executor, data_topics)
@@ -197,32 +200,32 @@ def replay(node: ReplayNode, executor) -> None:
         try:
             while True:
                 node.clock.start(window_start)
+                node.publish_clock(window_start)  # sim time is valid before the first block
                 last_clock_ns = window_start
-                for rec in reader.iter_raw(topics=data_topics, start_ns=window_start,
-                                           end_ns=window_end):
+                for topic, msgtype, stamp_ns, cdr in reader.iter_raw(topics=data_topics, **window):
                     # Wait until due: sleep in slices, keep /clock ticking, serve services.
                     while not node.quit:
-                        remaining = node.clock.wall_due(rec.log_time_ns) - time.monotonic()
+                        remaining = node.clock.wall_due(stamp_ns) - time.monotonic()
                         if remaining <= 0 and not node.clock.paused:
                             break
                         executor.spin_once(timeout_sec=0.0)
                         bag_now = node.clock.bag_now_ns()
                         if node._clock_pub is not None and bag_now - last_clock_ns >= clock_period_ns:
-                            node.publish_clock(min(bag_now, rec.log_time_ns))
+                            node.publish_clock(min(bag_now, stamp_ns))
                             last_clock_ns = bag_now
                         progress.show(node, (bag_now - window_start) * 1e-9)
                         time.sleep(min(max(remaining, 0.0) if not node.clock.paused else 0.05,
                                        node.clock_period_s / max(node.clock.rate or 1.0, 1.0)))
                     if node.quit:
                         return
-                    if rec.log_time_ns > last_clock_ns:
-                        node.publish_clock(rec.log_time_ns)
-                        last_clock_ns = rec.log_time_ns
-                    pub = node.publisher_for(rec.topic, rec.msgtype)
+                    if stamp_ns > last_clock_ns:
+                        node.publish_clock(stamp_ns)
+                        last_clock_ns = stamp_ns
+                    pub = node.publisher_for(topic, msgtype)
                     if pub is not None:
-                        pub.publish(rec.cdr)
+                        pub.publish(cdr)
                         node.published += 1
-                    progress.show(node, (rec.log_time_ns - window_start) * 1e-9)
+                    progress.show(node, (stamp_ns - window_start) * 1e-9)
                 if not node.loop:
                     break
             progress.show(node, total_s, force=True)

@@ -100,6 +100,17 @@ class ChannelData:
         return self.units[self.channels.index(name)]
 
 
+class _BlockViews:
+    """datas[i] -> rows of block i inside the concatenated array (for duplicate checks)."""
+
+    def __init__(self, out, offs, counts):
+        self.out, self.offs, self.counts = out, offs, counts
+
+    def __getitem__(self, i):
+        o = int(self.offs[i])
+        return self.out[o:o + int(self.counts[i])]
+
+
 def _one_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) < 300 else text[:297] + "..."
@@ -359,6 +370,12 @@ class BagReader:
         [start_time_s + start_s, ... + duration_s) are yielded whole (not trimmed).
         Malformed blocks raise ContractError (strict) or are skipped (strict=False).
         """
+        for topic, stamp, frame, rate, chans, units, data in self._iter_parts(topics, start_s,
+                                                                               duration_s):
+            yield topic, Block(stamp, frame, rate, chans, units, data)
+
+    def _iter_parts(self, topics, start_s, duration_s):
+        """iter_blocks without the Block wrapper: (topic, stamp_ns, frame, rate, channels, units, data)."""
         conns = self._select(topics, sensor_only=True)
         if not conns:
             return
@@ -396,8 +413,8 @@ class BagReader:
                 end = stamp + int(n / msg.sample_rate_hz * 1e9)
                 if end <= ws or (we is not None and stamp >= we):
                     continue
-            yield topic, Block(stamp, msg.header.frame_id, msg.sample_rate_hz, ctuple, utuple,
-                               flat.reshape(-1, nch))
+            yield (topic, stamp, msg.header.frame_id, msg.sample_rate_hz, ctuple, utuple,
+                   flat.reshape(-1, nch))
 
     def iter_raw(self, topics: Iterable[str] | str | None = None, start_s: float | None = None,
                  duration_s: float | None = None) -> Iterator[tuple[str, str, int, bytes]]:
@@ -418,15 +435,35 @@ class BagReader:
             if mt not in has_header:
                 fields = ts.fielddefs.get(mt, (None, []))[1]
                 has_header[mt] = bool(fields) and fields[0][0] == "header"
-            if not self._is2:
-                raw = ts.ros1_to_cdr(raw, mt)
             stamp = log_ns
-            if has_header[mt]:
+            if not self._is2:
+                raw, stamp = self._ros1_to_ros2_cdr(raw, mt, conn.topic, log_ns)
+            elif has_header[mt]:
                 stamp = self._header_stamp(raw, mt, conn.topic)
             if ws is not None and conn.topic != TOPIC_METADATA:
                 if stamp < ws - 1_000_000_000 or (we is not None and stamp >= we):
                     continue
             yield conn.topic, mt, stamp, bytes(raw)
+
+    def _ros1_to_ros2_cdr(self, raw, msgtype: str, topic: str, log_ns: int):
+        """ROS1 payload -> ROS 2 CDR (headers lose their ``seq``), and its stamp."""
+        ts = self._reader.typestore
+        ours = typestore()
+        try:
+            msg = ts.deserialize_ros1(raw, msgtype)
+        except Exception as exc:  # noqa: BLE001
+            raise self._fail(f"{topic}: cannot decode ROS1 message: {_one_line(exc)}") from None
+        if msgtype == SENSORBLOCK_TYPE:
+            from maglev_ros.sensor_block import block_to_msg, msg_to_block
+            blk = msg_to_block(msg, f"{self.path} {topic}")
+            return bytes(ours.serialize_cdr(block_to_msg(blk, ours), msgtype)), blk.stamp_ns
+        if msgtype == STRING_TYPE:
+            return bytes(ours.serialize_cdr(ours.types[STRING_TYPE](data=msg.data), msgtype)), log_ns
+        stamp = log_ns
+        hdr = getattr(msg, "header", None)
+        if hdr is not None and hasattr(hdr, "stamp"):
+            stamp = hdr.stamp.sec * 1_000_000_000 + hdr.stamp.nanosec
+        return bytes(ts.ros1_to_cdr(raw, msgtype)), stamp
 
     @staticmethod
     def _cdr_stamp(raw) -> int:
@@ -453,102 +490,138 @@ class BagReader:
         start before the end of the previous block (overlap) are dropped; all of it is listed in
         ``ChannelData.issues``. Blocks whose channel list differs from the first are refused
         (ContractError in strict mode, skipped and reported otherwise). With a window, samples
-        outside [start_time_s + start_s, + duration_s) are cut off.
+        outside [start_time_s + start_s, + duration_s) are cut off. NaN/inf samples raise
+        ContractError in strict mode and are kept (and reported) otherwise.
         """
         if topic not in self.topics:
             self._need_open()
             raise self._fail(f"topic {topic} not in bag (topics: {', '.join(sorted(self.topics))})")
-        stamps, counts, rates, datas = [], [], [], []
         issues: list[Issue] = []
         channels = units = None
-        for _, blk in self.iter_blocks(topic, start_s, duration_s):
+        # Copy each block straight into one growing float64 array, so message buffers are
+        # released as we go (retaining them costs far more than the copy).
+        info = self.topics[topic]
+        est = max(int(info.count) * int(info.block_samples or 1), 1)
+        if duration_s is not None and info.sample_rate_hz:
+            est = min(est, int(duration_s * info.sample_rate_hz) + 4 * int(info.block_samples or 1))
+        out = None
+        pos = 0
+        stamps, rates, offs = [], [], []
+        for _, stamp, _f, rate, bch, bun, bdata in self._iter_parts(topic, start_s, duration_s):
             if channels is None:
-                channels, units = blk.channels, blk.units
-            elif blk.channels != channels or blk.units != units:
-                msg = (f"channels/units change at t={blk.stamp_s:.6f} s "
-                       f"({', '.join(blk.channels)}) vs first block ({', '.join(channels)})")
+                channels, units = bch, bun
+                out = np.empty((est, len(channels)), dtype=np.float64)
+            elif bch is not channels and (bch != channels or bun != units):
+                msg = (f"channels/units change at t={stamp * 1e-9:.6f} s "
+                       f"({', '.join(bch)}) vs first block ({', '.join(channels)})")
                 if self.strict:
                     raise self._fail(f"{topic}: {msg}")
-                issues.append(Issue("error", topic, None, blk.stamp_s, "channels_changed",
+                issues.append(Issue("error", topic, None, stamp * 1e-9, "channels_changed",
                                     msg + "; block skipped"))
                 continue
-            stamps.append(blk.stamp_ns)
-            counts.append(blk.n_samples)
-            rates.append(blk.sample_rate_hz)
-            datas.append(blk.data)
+            n = bdata.shape[0]
+            if pos + n > out.shape[0]:
+                grown = np.empty((max(2 * out.shape[0], pos + n), out.shape[1]), dtype=np.float64)
+                grown[:pos] = out[:pos]
+                out = grown
+            out[pos:pos + n] = bdata
+            stamps.append(stamp)
+            rates.append(rate)
+            offs.append(pos)
+            pos += n
         if channels is None:
-            info = self.topics[topic]
             return ChannelData(topic, info.channels, info.units, info.sample_rate_hz or 0.0,
                                np.zeros(0), np.zeros((0, len(info.channels))), tuple(issues))
         stamps_a = np.asarray(stamps, dtype=np.int64)
-        counts_a = np.asarray(counts, dtype=np.int64)
+        offs_a = np.asarray(offs, dtype=np.int64)
+        counts_a = np.diff(np.append(offs_a, pos))
         rates_a = np.asarray(rates, dtype=np.float64)
-        order = np.argsort(stamps_a, kind="stable")
-        if np.any(order != np.arange(order.size)):
-            n_bad = int(np.sum(np.diff(stamps_a) < 0))
-            issues.append(Issue("warning", topic, None, float(stamps_a[np.argmax(np.diff(stamps_a) < 0) + 1]) * 1e-9,
-                                "out_of_order", f"{n_bad} block(s) out of stamp order; sorted"))
-        keep = np.ones(order.size, dtype=bool)
-        skip_head = np.zeros(order.size, dtype=np.int64)
-        prev_i = None
-        prev_end_ns = None
-        for k, i in enumerate(order):
-            if prev_i is not None:
-                if stamps_a[i] == stamps_a[prev_i] and counts_a[i] == counts_a[prev_i] \
-                        and np.array_equal(datas[i], datas[prev_i], equal_nan=True):
-                    keep[k] = False
-                    issues.append(Issue("warning", topic, None, stamps_a[i] * 1e-9, "duplicate",
-                                        "exact duplicate block dropped"))
-                    continue
-                half = 0.5e9 / rates_a[i]
-                if stamps_a[i] < prev_end_ns - half:
-                    # drop the leading samples that fall inside the previous block
-                    n_over = int(np.ceil((prev_end_ns - half - stamps_a[i]) * rates_a[i] / 1e9))
-                    n_over = min(n_over, int(counts_a[i]))
-                    skip_head[k] = n_over
-                    issues.append(Issue("warning", topic, None, stamps_a[i] * 1e-9, "overlap",
-                                        f"block overlaps the previous one by "
-                                        f"{(prev_end_ns - stamps_a[i]) * 1e-9:.6g} s; "
-                                        f"{n_over} leading sample(s) dropped"))
-                    if n_over == counts_a[i]:
-                        keep[k] = False
-                        continue
-            end = stamps_a[i] + counts_a[i] * 1e9 / rates_a[i]
-            prev_end_ns = end if prev_end_ns is None else max(prev_end_ns, end)
-            prev_i = i
+        datas = _BlockViews(out, offs_a, counts_a)
+        if np.any(np.diff(stamps_a) < 0):
+            bad = np.nonzero(np.diff(stamps_a) < 0)[0]
+            issues.append(Issue("warning", topic, None, float(stamps_a[bad[0] + 1]) * 1e-9,
+                                "out_of_order", f"{bad.size} block(s) out of stamp order; sorted"))
+            order = np.argsort(stamps_a, kind="stable")
+        else:
+            order = np.arange(stamps_a.size)
+        keep, heads = self._resolve_overlaps(topic, order, stamps_a, counts_a, rates_a, datas,
+                                             issues)
         sel = order[keep]
-        heads = skip_head[keep]
-        pieces = [datas[i][h:] if h else datas[i] for i, h in zip(sel, heads)]
+        heads = heads[keep]
         n_per = counts_a[sel] - heads
-        data = np.concatenate(pieces, axis=0).astype(np.float64) if pieces else \
-            np.zeros((0, len(channels)))
-        # sample times without a Python loop over samples: stamp + (j + head) / rate
         total = int(n_per.sum())
-        starts = np.concatenate(([0], np.cumsum(n_per)[:-1]))
-        idx = np.arange(total) - np.repeat(starts, n_per) + np.repeat(heads, n_per)
-        time_s = np.repeat(stamps_a[sel] * 1e-9, n_per) + idx / np.repeat(rates_a[sel], n_per)
+        starts = np.cumsum(n_per) - n_per
+        idx = np.arange(total) - np.repeat(starts - heads, n_per)   # sample index in its block
+        if total == pos and np.array_equal(sel, np.arange(stamps_a.size)):
+            data = out[:pos]
+        else:
+            data = out[np.repeat(offs_a[sel], n_per) + idx]
+        # sample times without a Python loop over samples: stamp + j / rate
+        rates_sel = rates_a[sel]
+        if np.all(rates_sel == rates_sel[0]):
+            time_s = np.repeat(stamps_a[sel] * 1e-9, n_per) + idx / rates_sel[0]
+        else:
+            time_s = np.repeat(stamps_a[sel] * 1e-9, n_per) + idx / np.repeat(rates_sel, n_per)
+            issues.append(Issue("warning", topic, None, None, "rate_change",
+                                f"sample rate varies between blocks: "
+                                f"{sorted(set(rates_sel.tolist()))} Hz"))
         if start_s is not None or duration_s is not None:
-            t0 = self._t0_ns() * 1e-9
-            ws = t0 + (start_s or 0.0)
+            ws = self._t0_ns() * 1e-9 + (start_s or 0.0)
             m = time_s >= ws - 1e-12
             if duration_s is not None:
                 m &= time_s < ws + duration_s - 1e-12
             time_s, data = time_s[m], data[m]
-        if len(set(rates_a[sel].tolist())) > 1:
-            issues.append(Issue("warning", topic, None, None, "rate_change",
-                                f"sample rate varies between blocks: "
-                                f"{sorted(set(rates_a[sel].tolist()))} Hz"))
-        bad = ~np.isfinite(data)
-        if bad.any():
-            rows, cols = np.nonzero(bad)
+        # column sums are finite iff every sample is (float32-range data cannot overflow float64)
+        if not np.isfinite(np.add.reduce(data, axis=0)).all():
+            rows, cols = np.nonzero(~np.isfinite(data))
             for c in np.unique(cols):
                 r = rows[cols == c]
                 msg = f"{r.size} NaN/inf sample(s), first at t={time_s[r[0]]:.6f} s"
                 if self.strict:
                     raise self._fail(f"{topic} [{channels[c]}]: {msg}")
                 issues.append(Issue("error", topic, channels[c], float(time_s[r[0]]), "nan", msg))
-        rate = Counter(rates_a[sel].tolist()).most_common(1)[0][0] if sel.size else rates_a[0]
+        rate = Counter(rates_sel.tolist()).most_common(1)[0][0]
         return ChannelData(topic, channels, units, float(rate), time_s, data, tuple(issues))
+
+    @staticmethod
+    def _resolve_overlaps(topic, order, stamps_a, counts_a, rates_a, datas, issues):
+        """Per sorted block: keep flag and leading samples to drop (duplicates / overlaps).
+
+        Vectorised test first; the per-block loop only runs when something overlaps.
+        """
+        n = order.size
+        keep = np.ones(n, dtype=bool)
+        heads = np.zeros(n, dtype=np.int64)
+        st = stamps_a[order]
+        ends = st + counts_a[order] * 1e9 / rates_a[order]
+        half = 0.5e9 / rates_a[order]
+        if n < 2 or np.all(st[1:] >= np.maximum.accumulate(ends)[:-1] - half[1:]):
+            return keep, heads
+        prev_k = None
+        prev_end = None
+        for k in range(n):
+            i = order[k]
+            if prev_k is not None and st[k] < prev_end - half[k]:
+                pi = order[prev_k]
+                if st[k] == st[prev_k] and counts_a[i] == counts_a[pi] \
+                        and np.array_equal(datas[i], datas[pi], equal_nan=True):
+                    keep[k] = False
+                    issues.append(Issue("warning", topic, None, float(st[k]) * 1e-9, "duplicate",
+                                        "exact duplicate block dropped"))
+                    continue
+                n_over = int(np.ceil((prev_end - half[k] - st[k]) * rates_a[i] / 1e9))
+                n_over = min(n_over, int(counts_a[i]))
+                heads[k] = n_over
+                issues.append(Issue("warning", topic, None, float(st[k]) * 1e-9, "overlap",
+                                    f"block overlaps the previous one by "
+                                    f"{(prev_end - st[k]) * 1e-9:.6g} s; "
+                                    f"{n_over} leading sample(s) dropped"))
+                if n_over == counts_a[i]:
+                    keep[k] = False
+                    continue
+            prev_end = ends[k] if prev_end is None else max(prev_end, ends[k])
+            prev_k = k
+        return keep, heads
 
     # ---------------------------------------------------------------------------- checks
     def check(self) -> list[Issue]:

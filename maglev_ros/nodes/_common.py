@@ -8,8 +8,9 @@ import sys
 import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-# Data streams: reliable, so a replay at high rate loses nothing a subscriber can keep up with.
-QOS_STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
+# Data streams: reliable + keep-all, so a fast replay is slowed by a slow subscriber (DDS flow
+# control) instead of overwriting blocks it has not taken yet.
+QOS_STREAM = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1000,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 # Latched: late subscribers still get the last message (metadata, parameters, profiles).

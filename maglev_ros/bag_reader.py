@@ -130,6 +130,9 @@ class BagReader:
         self.metadata: Metadata | None = None
         self.topics: dict[str, TopicInfo] = {}
         self.open_issues: list[Issue] = []
+        #: filled by check(): per SensorBlock topic blocks, samples, first_stamp_s, end_s,
+        #: sample_rates_hz, block_samples (header-stamp based)
+        self.topic_stats: dict[str, dict] = {}
         self._reader = None
         self._conns: dict[str, list] = {}
         self._deser = None
@@ -704,6 +707,19 @@ class BagReader:
             digest = hashlib.blake2b(flat.tobytes(), digest_size=8).digest()
             recs[topic].append((stamp, data.shape[0], rate, digest))
 
+        self.topic_stats = {}
+        for topic, rec in recs.items():
+            st = np.array([r[0] for r in rec], dtype=np.int64)
+            ns = np.array([r[1] for r in rec], dtype=np.int64)
+            rt = np.array([r[2] for r in rec], dtype=np.float64)
+            i_last = int(np.argmax(st))
+            self.topic_stats[topic] = {
+                "blocks": len(rec), "samples": int(ns.sum()),
+                "first_stamp_s": float(st.min()) * 1e-9,
+                "end_s": float(st[i_last]) * 1e-9 + float(ns[i_last] / rt[i_last]),
+                "sample_rates_hz": sorted(set(rt.tolist())),
+                "block_samples": sorted(set(ns.tolist()))[:10],
+            }
         for (topic, ch), (t_first, n, nb) in nan_stats.items():
             add(Issue("error", topic, ch, t_first, "nan",
                       f"{n} NaN/inf sample(s) in {nb} block(s), first at t={t_first:.6f} s"))
@@ -717,6 +733,9 @@ class BagReader:
         for (topic, kind), n in overflow.items():
             issues.append(Issue("warning", topic, None, None, kind,
                                 f"... and {n} more '{kind}' issue(s) on this topic"))
+        # errors first, then by topic and time (stable: open-time issues keep their place)
+        issues.sort(key=lambda i: (i.severity != "error", i.topic or "",
+                                   float("inf") if i.time_s is None else i.time_s))
         return issues
 
     @staticmethod

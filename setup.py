@@ -13,6 +13,7 @@ PACKAGE = "maglev_ros"
 NODES = {
     "replay": "maglev_ros.nodes.replay:main",
     "echo": "maglev_ros.nodes.echo:main",
+    "summary": "maglev_ros.nodes.summary:main",
 }
 
 setup(

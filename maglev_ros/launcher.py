@@ -31,13 +31,13 @@ def _pump(name: str, stream, out) -> None:
 
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
            params_file: str | None = None, linger_s: float = 3.0, env: dict | None = None,
-           out=sys.stderr, on_started=None) -> int:
+           out=sys.stderr, on_started=None, extra: list[NodeSpec] = ()) -> int:
     """Run a graph until its replay ends (or Ctrl-C). Returns the replay's exit code."""
     overrides = overrides or {}
     procs: list[Running] = []
     penv = dict(os.environ if env is None else env)
     try:
-        for spec in graph(graph_name):
+        for spec in list(graph(graph_name)) + list(extra):
             if spec.needs_bag and not bag:
                 continue
             params = dict(spec.params)
@@ -62,6 +62,8 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
             if replay is None and all(r.proc.poll() is not None for r in procs):
                 return 0
             dead = [r for r in procs if r.proc.poll() not in (None, 0)]
+            if replay is not None:
+                dead = [r for r in dead if r is replay]
             if dead:
                 out.write(f"[launch] {dead[0].spec.name} exited with code {dead[0].proc.returncode}\n")
                 return dead[0].proc.returncode

@@ -25,7 +25,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from maglev_ros.contract import (SENSORBLOCK_TYPE, STRING_TYPE, TOPIC_METADATA, Issue, Metadata,
-                                 check_units, parse_metadata)
+                                 check_units, metadata_issues, parse_metadata)
 from maglev_ros.errors import ContractError, UserError
 from maglev_ros.sensor_block import Block, typestore
 
@@ -595,7 +595,8 @@ class BagReader:
         n = order.size
         keep = np.ones(n, dtype=bool)
         heads = np.zeros(n, dtype=np.int64)
-        st = stamps_a[order]
+        base = int(stamps_a.min())
+        st = stamps_a[order] - base          # relative ns: exact in float64
         ends = st + counts_a[order] * 1e9 / rates_a[order]
         half = 0.5e9 / rates_a[order]
         if n < 2 or np.all(st[1:] >= np.maximum.accumulate(ends)[:-1] - half[1:]):
@@ -609,13 +610,13 @@ class BagReader:
                 if st[k] == st[prev_k] and counts_a[i] == counts_a[pi] \
                         and np.array_equal(datas[i], datas[pi], equal_nan=True):
                     keep[k] = False
-                    issues.append(Issue("warning", topic, None, float(st[k]) * 1e-9, "duplicate",
+                    issues.append(Issue("warning", topic, None, (int(st[k]) + base) * 1e-9, "duplicate",
                                         "exact duplicate block dropped"))
                     continue
                 n_over = int(np.ceil((prev_end - half[k] - st[k]) * rates_a[i] / 1e9))
                 n_over = min(n_over, int(counts_a[i]))
                 heads[k] = n_over
-                issues.append(Issue("warning", topic, None, float(st[k]) * 1e-9, "overlap",
+                issues.append(Issue("warning", topic, None, (int(st[k]) + base) * 1e-9, "overlap",
                                     f"block overlaps the previous one by "
                                     f"{(prev_end - st[k]) * 1e-9:.6g} s; "
                                     f"{n_over} leading sample(s) dropped"))
@@ -643,6 +644,9 @@ class BagReader:
                 overflow[key] += 1
 
         known = set(self.metadata.sensors) if self.metadata is not None else None
+        if self.metadata is not None:
+            for mi in metadata_issues(self.metadata):
+                add(mi)
         recorded: set[str] = set()
         conns = self._select(None, sensor_only=True)
         # per topic: list of (stamp_ns, n_samples, rate, digest)
@@ -760,15 +764,16 @@ class BagReader:
                     add(Issue("warning", topic, None, stamp * 1e-9, "duplicate",
                               "duplicate block (same stamp and data)"))
                     continue
-                expected = pstamp + pn * 1e9 / prate
+                # differences in integer ns first: float64 cannot hold epoch stamps to the ns
+                late_ns = (stamp - pstamp) - pn * 1e9 / prate
                 half = 0.5e9 / prate
-                if stamp > expected + half:
-                    add(Issue("warning", topic, None, expected * 1e-9, "gap",
-                              f"gap of {(stamp - expected) * 1e-9:.6g} s "
-                              f"(~{(stamp - expected) * prate / 1e9:.0f} samples missing) "
+                if late_ns > half:
+                    add(Issue("warning", topic, None, (pstamp + pn * 1e9 / prate) * 1e-9, "gap",
+                              f"gap of {late_ns * 1e-9:.6g} s "
+                              f"(~{late_ns * prate / 1e9:.0f} samples missing) "
                               f"before block at {stamp * 1e-9:.6f} s"))
-                elif stamp < expected - half:
+                elif late_ns < -half:
                     add(Issue("warning", topic, None, stamp * 1e-9, "overlap",
-                              f"block starts {(expected - stamp) * 1e-9:.6g} s before the "
+                              f"block starts {-late_ns * 1e-9:.6g} s before the "
                               f"previous block ends"))
             prev = (stamp, n, rate, digest)

@@ -19,7 +19,7 @@ __all__ = [
     "CONTRACT_SCHEMA", "TOPIC_METADATA", "TOPIC_GUIDEWAY_ACCEL", "TOPIC_GUIDEWAY_DISP",
     "TOPIC_VEHICLE_ACCEL", "TOPIC_VEHICLE_GAP", "TOPIC_VEHICLE_POSITION", "DATA_TOPICS",
     "SENSORBLOCK_TYPE", "STRING_TYPE", "SI_UNITS", "NON_SI_UNITS", "TOPIC_UNITS",
-    "Span", "Sensor", "Metadata", "Issue", "parse_metadata", "metadata_from_dict",
+    "Span", "Sensor", "Metadata", "Issue", "parse_metadata", "metadata_from_dict", "metadata_issues",
     "unit_conversion", "is_si_unit", "check_units",
 ]
 
@@ -281,8 +281,6 @@ def metadata_from_dict(doc: Any, source: str) -> Metadata:
         if s.get("direction") is not None and s["direction"] not in _DIRECTIONS:
             raise fail(f"{p}.direction",
                        f"expected one of {', '.join(_DIRECTIONS)}, got {s['direction']!r}")
-        if s.get("span") is not None and span_ids and s["span"] not in span_ids:
-            raise fail(f"{p}.span", f"span {s['span']!r} is not listed in line.spans")
         mag = s.get("magnet")
         if mag is not None and (not isinstance(mag, int) or isinstance(mag, bool) or mag < 1):
             raise fail(f"{p}.magnet", f"expected a 1-based magnet number, got {mag!r}")
@@ -318,6 +316,27 @@ def metadata_from_dict(doc: Any, source: str) -> Metadata:
     if design is not None and not isinstance(design, dict):
         raise fail("design", "expected an object")
     return Metadata(raw=doc, source=source)
+
+
+def metadata_issues(md: Metadata) -> list[Issue]:
+    """Soft problems of valid metadata (warnings, not errors): a sensor's ``span`` that is not
+    listed in ``line.spans`` (the contract's own example does this), a guideway sensor whose
+    ``position_m`` lies outside its span."""
+    issues = []
+    spans = {s.id: s for s in md.spans}
+    for sid, s in md.sensors.items():
+        if s.span is None:
+            continue
+        sp = spans.get(s.span)
+        if sp is None:
+            issues.append(Issue("warning", s.topic, sid, None, "unknown_span",
+                                f"metadata key sensors.{sid}.span: span {s.span!r} is not listed "
+                                f"in line.spans ({', '.join(spans) or 'none'})"))
+        elif s.position_m is not None and not (sp.start_m - 1e-9 <= s.position_m <= sp.end_m + 1e-9):
+            issues.append(Issue("warning", s.topic, sid, None, "position_outside_span",
+                                f"metadata key sensors.{sid}.position_m: {s.position_m} m is outside "
+                                f"span {sp.id} [{sp.start_m}, {sp.end_m}] m"))
+    return issues
 
 
 def parse_metadata(text: str | bytes, source: str) -> Metadata:

@@ -171,6 +171,7 @@ class Faults:
     units: dict = field(default_factory=dict)         # topic -> {channel: unit string}
     short_units: dict = field(default_factory=dict)   # topic -> [k]: last unit missing in block k
     extra_channel: dict = field(default_factory=dict)  # topic -> name of an unlisted extra channel
+    bad_length: dict = field(default_factory=dict)    # topic -> [k]: last value of block k dropped
     missing_metadata_key: str | None = None           # dotted key removed, e.g. "run.kind"
     no_metadata: bool = False                         # no /testline/metadata topic at all
     truncate_fraction: float | None = None            # keep this fraction of the storage file
@@ -251,8 +252,10 @@ def write_foreign_bag(path, metadata: dict, topics: dict, block_samples=None,
             sec, nsec = divmod(stamp, 1_000_000_000)
             hdr = Header(seq=k, stamp=Time(sec=sec, nanosec=nsec), frame_id="test") if ros1 else \
                 Header(stamp=Time(sec=sec, nanosec=nsec), frame_id="test")
-            msg = Msg(header=hdr, sample_rate_hz=float(rate), channels=chans, units=us,
-                      data=np.ascontiguousarray(blk).reshape(-1))
+            flat = np.ascontiguousarray(blk).reshape(-1)
+            if k in faults.bad_length.get(topic, ()):
+                flat = flat[:-1].copy()
+            msg = Msg(header=hdr, sample_rate_hz=float(rate), channels=chans, units=us, data=flat)
             # arrival: when the block is complete (its last sample) plus transport lag
             arrive = stamp + int(n * 1e9 / rate) + lag_ns + int(rng.integers(0, max(jitter_ns, 1)))
             events.append([arrive, topic, k, stamp, msg])

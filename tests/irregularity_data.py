@@ -35,8 +35,9 @@ def german_low_psd_rad(omega_rad_m: np.ndarray) -> np.ndarray:
 def random_profile(length_m: float, dx_m: float, rng: np.random.Generator, scale: float = 1.0,
                    psd=german_low_psd_rad, min_wavelength_m: float = 0.5,
                    max_wavelength_m: float = 400.0) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian profile with one-sided PSD ``scale^2 * psd(Omega)`` (Omega in rad/m), by summing
-    harmonics with random phases on the FFT grid (spectral representation)."""
+    """Gaussian profile with one-sided PSD ``scale^2 * psd(Omega)`` (Omega in rad/m): complex
+    Gaussian Fourier coefficients with E|c_k|^2 = 2 S_f(k) dk on the FFT grid (so amplitudes are
+    Rayleigh, as for a true Gaussian process, not fixed)."""
     n = int(np.ceil(length_m / dx_m)) + 1
     nfft = int(2 ** np.ceil(np.log2(n)))
     k = np.fft.rfftfreq(nfft, dx_m)                      # cycles/m
@@ -46,8 +47,8 @@ def random_profile(length_m: float, dx_m: float, rng: np.random.Generator, scale
     sel = (k >= 1.0 / max_wavelength_m) & (k <= 1.0 / min_wavelength_m)
     s_cyc[sel] = 2 * np.pi * psd(om[sel]) * scale ** 2  # m^2/(cycle/m), one-sided
     amp = np.sqrt(2 * s_cyc * dk)
-    ph = rng.uniform(0, 2 * np.pi, k.size)
-    spec = amp * np.exp(1j * ph) * nfft / 2
+    c = (rng.standard_normal(k.size) + 1j * rng.standard_normal(k.size)) / np.sqrt(2)
+    spec = amp * c * nfft / 2
     r = np.fft.irfft(spec, nfft)[:n]
     return np.arange(n) * dx_m, r
 

@@ -536,3 +536,185 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
         min_wavelength_m=float(lam_min), max_wavelength_m=float(lam_max),
         highpass_hz=cfg.highpass_hz, filter_order=cfg.filter_order, band_speed_mps=float(v_band),
         kind=kind, agreement=tuple(agree), bias_mps2=tuple(biases), warnings=tuple(uniq))
+
+
+class _Stream:
+    """Time-ordered buffer of one topic's blocks (time_s, data) with channel names."""
+
+    def __init__(self):
+        self.t = np.zeros(0)
+        self.d = None
+        self.channels = None
+        self.fs = None
+
+    def append(self, cd, what: str):
+        t = np.asarray(cd.time_s, float)
+        d = np.asarray(cd.data, float)
+        if d.ndim == 1:
+            d = d[:, None]
+        ch = tuple(cd.channels)
+        if self.channels is None:
+            self.channels = ch
+            self.d = np.zeros((0, d.shape[1]))
+        elif ch != self.channels:
+            raise UserError(f"{what}: channels changed from {self.channels} to {ch} mid-stream")
+        if t.size == 0:
+            return
+        fs = getattr(cd, "sample_rate_hz", None)
+        if fs:
+            self.fs = float(fs)
+        if self.t.size and t[0] <= self.t[-1]:
+            keep = t > self.t[-1]           # drop repeated / out-of-order samples
+            t, d = t[keep], d[keep]
+        self.t = np.concatenate([self.t, t])
+        self.d = np.vstack([self.d, d])
+
+    def last(self) -> float:
+        return float(self.t[-1]) if self.t.size else -math.inf
+
+    def drop_before(self, t0: float):
+        i = int(np.searchsorted(self.t, t0))
+        if i > 0:
+            self.t = self.t[i:]
+            self.d = self.d[i:]
+
+    def view(self):
+        from types import SimpleNamespace
+        return SimpleNamespace(time_s=self.t, data=self.d, channels=self.channels,
+                               sample_rate_hz=self.fs)
+
+
+class IncrementalProfiler:
+    """Streaming inertial profiler for the node: feed blocks with :meth:`partial_fit`, read the
+    growing profile with :meth:`result`.
+
+    The band must be fixed up front (``max_wavelength_m``, or ``band_speed_mps`` with default
+    4.17 m/s = 15 km/h). Signals are processed in overlapping time windows: each run covers the
+    buffer from ``margin_s`` before the last committed time to the newest sample present on all
+    three topics, and commits samples up to ``margin_s`` before its end
+    (``margin_s = edge_s + 2 / f_c``), so every committed sample had at least ``margin_s`` of
+    context on both sides, as in the batch fit. Memory: the signal buffers hold at most
+    ``2 * margin_s + hop_s`` plus one block; the profile grid grows with distance and is capped
+    at ``max_profile_m`` (oldest points dropped) when given.
+    """
+
+    def __init__(self, magnet_offsets_m: Sequence[float], nominal_gap_m: float = 0.010,
+                 channel_pairs: dict | None = None, hop_s: float | None = None,
+                 max_profile_m: float | None = None, band_speed_mps: float | None = None,
+                 max_wavelength_m: float | None = None, **profiler_kwargs):
+        if band_speed_mps is None and max_wavelength_m is None:
+            band_speed_mps = 15.0 / 3.6
+        self.cfg = InertialProfiler(band_speed_mps=band_speed_mps,
+                                    max_wavelength_m=max_wavelength_m, **profiler_kwargs)
+        self.offsets = [float(o) for o in magnet_offsets_m]
+        self.g0 = float(nominal_gap_m)
+        self.pairs = channel_pairs
+        fc = self.cfg.highpass_hz
+        self.margin_s = self.cfg.edge_s + 2.0 / fc
+        self.hop_s = 4.0 / fc if hop_s is None else float(hop_s)
+        self.acc = _BinAccumulator(self.cfg.spacing_m,
+                                   None if max_profile_m is None
+                                   else int(max_profile_m / self.cfg.spacing_m))
+        self.streams = {"accel": _Stream(), "gap": _Stream(), "position": _Stream()}
+        self.t_committed: float | None = None
+        self.warnings: list[DataWarning] = []
+        self._seen: set = set()
+        self.biases: dict[int, list[float]] = {}
+        self.specs = None
+        self.v_max = 0.0
+        self.slow_s = 0.0
+        self.slow_m = 0.0
+        self.max_buffer_samples = 0
+
+    def partial_fit(self, accel=None, gap=None, position=None) -> "IncrementalProfiler":
+        """Add blocks (ChannelData/Block-like: time_s, data, channels) of any of the topics."""
+        for name, cd, what in (("accel", accel, "/testline/vehicle/accel"),
+                               ("gap", gap, "/testline/vehicle/gap"),
+                               ("position", position, "/testline/vehicle/position")):
+            if cd is not None:
+                if not hasattr(cd, "time_s") and hasattr(cd, "times_s"):
+                    from types import SimpleNamespace
+                    cd = SimpleNamespace(time_s=cd.times_s(), data=cd.data, channels=cd.channels,
+                                         sample_rate_hz=cd.sample_rate_hz)
+                self.streams[name].append(cd, what)
+        t_avail = min(s.last() for s in self.streams.values())
+        t0 = self.streams["accel"].t[0] if self.streams["accel"].t.size else None
+        if t0 is None or not math.isfinite(t_avail):
+            return self
+        start = self.t_committed if self.t_committed is not None else t0
+        if t_avail - start >= self.hop_s + 2 * self.margin_s:
+            self._process(t_avail - self.margin_s, final=False)
+        self.max_buffer_samples = max(self.max_buffer_samples, self.streams["accel"].t.size)
+        return self
+
+    def _process(self, t_commit_end: float, final: bool, acc=None):
+        acc = self.acc if acc is None else acc
+        s = self.streams
+        t_end = min(x.last() for x in s.values())
+        a_v, g_v, p_v = s["accel"].view(), s["gap"].view(), s["position"].view()
+        sel = a_v.time_s <= t_end
+        from types import SimpleNamespace
+        a_v = SimpleNamespace(time_s=a_v.time_s[sel], data=a_v.data[sel], channels=a_v.channels,
+                              sample_rate_hz=a_v.sample_rate_hz)
+        if a_v.time_s.size < 16:
+            return
+        specs, samp, warns, biases, fs, t = self.cfg.samples(
+            a_v, g_v, p_v, self.offsets, self.g0, None, self.pairs)
+        self.specs = specs
+        lo = -math.inf if self.t_committed is None else self.t_committed
+        hi = math.inf if final else t_commit_end
+        win = (t >= lo) & (t < hi)
+        v = samp[0][2]
+        v_band = self._v_band()
+        for k, (x, r, vv) in enumerate(samp):
+            keep = win & np.isfinite(r) & (vv >= v_band)
+            acc.add(k, x[keep], r[keep])
+            if not final:
+                self.biases.setdefault(k, []).append(biases[k])
+        if not final:
+            mv = win & np.isfinite(v)
+            if mv.any():
+                self.v_max = max(self.v_max, float(v[mv].max()))
+            slow = mv & (v < v_band)
+            self.slow_s += slow.sum() / fs
+            self.slow_m += float(v[slow].sum() / fs)
+            for w in warns:
+                key = (w.kind, w.channel) if w.kind == "accel_bias" else (w.kind, w.channel, w.start_s)
+                if key not in self._seen:
+                    self._seen.add(key)
+                    self.warnings.append(w)
+            self.t_committed = t_commit_end
+            keep_from = t_commit_end - self.margin_s
+            for st in s.values():
+                st.drop_before(keep_from - 1.0)   # 1 s spare for the slower position stream
+
+    def _v_band(self) -> float:
+        c = self.cfg
+        if c.max_wavelength_m is not None:
+            return max(c.band_factor * c.highpass_hz * float(c.max_wavelength_m), c.stop_speed_mps)
+        return max(float(c.band_speed_mps), c.stop_speed_mps)
+
+    def result(self) -> IrregularityResult:
+        """The profile so far, including the not yet committed tail (processed on a copy)."""
+        import copy
+        acc = copy.deepcopy(self.acc)
+        if self.streams["accel"].t.size and min(st.t.size for st in self.streams.values()):
+            self._process(math.inf, final=True, acc=acc)
+        if self.specs is None:
+            raise UserError("irregularity stream: no complete accel/gap/position data yet")
+        v_band = self._v_band()
+        c = self.cfg
+        fs = self.streams["accel"].fs or 1000.0
+        lam_max = v_band / (c.band_factor * c.highpass_hz)
+        lam_min = max(c.magnet_length_m, 4 * c.spacing_m, 4 * self.v_max / fs)
+        if c.min_wavelength_m is not None:
+            lam_min = max(lam_min, float(c.min_wavelength_m))
+        warns = list(self.warnings)
+        if self.slow_s > 0:
+            warns.append(DataWarning(
+                "slow_section", "/testline/vehicle/position",
+                f"speed below band speed {v_band:.3g} m/s for {self.slow_s:.3g} s "
+                f"({self.slow_m:.3g} m travelled); those positions are dropped",
+                value=self.slow_m))
+        biases = [float(np.mean(self.biases.get(k, [0.0]))) for k in range(len(self.specs))]
+        return _finish(acc, self.specs, warns, biases, c, v_band, lam_min, lam_max, "loaded")

@@ -170,7 +170,8 @@ class BagReader:
             raise
         except Exception as exc:  # rosbags raises many types for a broken file
             msg = _one_line(exc)
-            if "magic" in msg.lower() or "truncat" in msg.lower():
+            if any(w in msg.lower() for w in ("magic", "truncat", "malformed", "damaged",
+                                               "could not be read", "unexpected end")):
                 msg = f"truncated or corrupt bag file ({msg})"
             raise self._fail(f"cannot open bag: {msg}") from None
         self._reader = reader
@@ -425,7 +426,8 @@ class BagReader:
 
         stamp_ns is the header stamp for SensorBlocks (and other types with a header) and the
         receive time otherwise. ROS1 payloads are converted to CDR. ``topics``: default all,
-        metadata included. The window (as in :meth:`iter_blocks`) is applied on stamp_ns.
+        metadata included (always, even outside a window). A window (seconds after
+        ``start_time_s``, as in :meth:`iter_blocks`) keeps messages with stamp_ns inside it.
         """
         conns = self._select(topics, sensor_only=False)
         if not conns:
@@ -444,7 +446,7 @@ class BagReader:
             elif has_header[mt]:
                 stamp = self._header_stamp(raw, mt, conn.topic)
             if ws is not None and conn.topic != TOPIC_METADATA:
-                if stamp < ws - 1_000_000_000 or (we is not None and stamp >= we):
+                if stamp < ws or (we is not None and stamp >= we):
                     continue
             yield conn.topic, mt, stamp, bytes(raw)
 

@@ -1,0 +1,419 @@
+"""Covariance-driven stochastic subspace identification (SSI-cov) of output-only vibration data.
+
+Algorithm (Peeters & De Roeck 1999, with the fast multi-order step of Doehler & Mevel 2012):
+
+1. optional anti-alias decimation (polyphase FIR, ``scipy.signal.resample_poly``) and demeaning;
+2. output covariances ``R_k = 1/M sum_t y_{t+k} y_t[refs]^T`` for k = 0..2i with the SAME
+   summation range for every lag (fixed-range block-Toeplitz sums, evaluated as one small
+   matrix product per lag, which is the fast path here since only 2i+1 lags are needed). The
+   fixed range keeps the exact shift structure ``R_k = C A^(k-1) G`` also for transient
+   (free-decay) data, so the same code identifies a vehicle pass' free decay;
+3. block Hankel ``H[p, q] = R_{p+q+1}`` (i block rows, i block columns, reference columns),
+   ONE SVD at the maximum order, observability ``O = U_n S_n^(1/2)``;
+4. all lower orders from one QR of the upper shifted observability matrix:
+   ``O_up = Q R`` gives ``A_n = R[:n,:n]^-1 (Q^T O_down)[:n,:n]`` (least squares for every n
+   at the cost of an n x n triangular solve);
+5. poles ``lambda = fs ln(mu)``, shapes ``phi = C psi``; stabilization and automatic selection of
+   physical poles by hierarchical clustering (:mod:`maglev_ros.modal.stabilization`).
+
+Uncertainty (``uncertainty="blocks"``, default): the record is split into ``n_blocks`` equal
+blocks; each block's covariance Hankel ``H_b`` is projected on the full-data right singular
+subspace, ``O_b = H_b V_n S_n^(-1/2)`` (first-order equivalent to re-running the SVD, since the
+change of the right subspace only changes the state basis to first order), and the modes are
+re-estimated per block at the mode's representative order. The reported std is the sample std of
+the block estimates divided by sqrt(n_blocks) (batch-means / Reynders et al. 2008 style). With
+``uncertainty="cluster"`` (used for free decays, where blocks are not exchangeable) the std is the
+spread of the stable poles within the mode's cluster across model orders, a cruder indicator.
+
+Hand-written instead of using koma-python / pyOMA2: those build the Hankel matrix from the full
+lagged data matrices and redo an SVD/pseudo-inverse per order, which is far slower (see
+bench/bench_modal.py), and they pull in GUI/plot stacks.
+"""
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.signal import resample_poly
+
+from maglev_ros.errors import UserError
+from maglev_ros.modal.stabilization import (
+    PoleTable, Spectrum, StabilityCriteria, cluster_poles, mac, mpc, mpd, poles_from_eigs,
+    real_mode_shape, stability_flags, sv_spectrum,
+)
+
+SCHEMA = "maglev-modes/1"
+
+
+# --------------------------------------------------------------------------------------------
+# results
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Mode:
+    """One identified mode. ``mode_shape`` is real, normalized to max |value| = 1."""
+    id: str
+    frequency_hz: float
+    damping_ratio: float
+    mode_shape: dict
+    mpc: float
+    mpd: float
+    std_frequency_hz: float
+    std_damping_ratio: float
+
+    def to_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "frequency_hz": float(self.frequency_hz),
+            "damping_ratio": float(self.damping_ratio),
+            "mode_shape": {str(k): float(v) for k, v in self.mode_shape.items()},
+            "mpc": float(self.mpc),
+            "mpd": float(self.mpd),
+            "std_frequency_hz": _json_float(self.std_frequency_hz),
+            "std_damping_ratio": _json_float(self.std_damping_ratio),
+        }
+
+    def shape_vector(self, channels) -> np.ndarray:
+        return np.array([self.mode_shape[c] for c in channels], dtype=float)
+
+
+def _json_float(x: float):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+@dataclass(frozen=True)
+class ModalResult:
+    """Identified modes plus the stabilization diagram (poles per order) and the spectrum."""
+    modes: tuple
+    stabilization: PoleTable | None
+    spectrum: Spectrum | None
+    fs_hz: float = 0.0                      # sampling rate the identification ran at
+    channels: tuple = ()
+    method: str = "ssi-cov"
+    uncertainty: str = "blocks"
+    complex_shapes: tuple = field(default=(), repr=False)   # per mode, complex, for MAC
+
+    def to_dict(self, diagram: bool = False) -> dict:
+        out = {"schema": SCHEMA, "modes": [m.to_dict() for m in self.modes]}
+        if diagram:
+            out["method"] = self.method
+            out["fs_hz"] = float(self.fs_hz)
+            out["uncertainty"] = self.uncertainty
+            if self.stabilization is not None:
+                out["stabilization"] = self.stabilization.to_dict()
+            if self.spectrum is not None:
+                out["spectrum"] = self.spectrum.to_dict()
+        return out
+
+    def frequencies_hz(self) -> np.ndarray:
+        return np.array([m.frequency_hz for m in self.modes], dtype=float)
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+_CONTROLLER = []
+
+
+def blas_threads(n: int | None):
+    """Context limiting BLAS threads (threadpoolctl when installed). The matrices here are small
+    (<= ~1000): multi-threaded OpenBLAS gains little and, on a loaded 2-core machine shared with
+    other nodes, its spin-waiting makes SVD/QR 10x slower, so estimators default to 1 thread."""
+    if n is None:
+        return contextlib.nullcontext()
+    if not _CONTROLLER:
+        try:
+            from threadpoolctl import ThreadpoolController
+            _CONTROLLER.append(ThreadpoolController())   # scans the loaded libraries once
+        except Exception:  # pragma: no cover - optional dependency
+            _CONTROLLER.append(None)
+    ctl = _CONTROLLER[0]
+    if ctl is None:  # pragma: no cover
+        return contextlib.nullcontext()
+    return ctl.limit(limits=int(n), user_api="blas")
+
+
+def decimation_factor(fs_hz: float, target_hz: float | None) -> int:
+    """Largest integer factor that keeps the rate >= ``target_hz`` (1 = no decimation)."""
+    if target_hz is None or target_hz <= 0 or target_hz >= fs_hz:
+        return 1
+    return max(1, int(np.floor(fs_hz / target_hz + 1e-9)))
+
+
+def decimate(data: np.ndarray, fs_hz: float, target_hz: float | None) -> tuple[np.ndarray, float]:
+    """Anti-aliased integer decimation (polyphase FIR); returns (data, new_fs_hz)."""
+    q = decimation_factor(fs_hz, target_hz)
+    if q == 1:
+        return np.asarray(data, dtype=float), float(fs_hz)
+    return resample_poly(np.asarray(data, dtype=float), 1, q, axis=0), float(fs_hz) / q
+
+
+def output_covariances(y: np.ndarray, max_lag: int, refs: np.ndarray | None = None,
+                       n_blocks: int = 1) -> np.ndarray:
+    """Fixed-range output covariances per block: array (n_blocks, max_lag+1, l, r).
+
+    ``R_b[k] = 1/M sum_{t in block b, t < start_b + M} y_{t+k} y_t[refs]^T``, M = block - max_lag.
+    """
+    y = np.ascontiguousarray(y, dtype=float)
+    n, l = y.shape
+    refs = np.arange(l) if refs is None else np.asarray(refs)
+    edges = np.linspace(0, n, n_blocks + 1).astype(int)
+    out = np.empty((n_blocks, max_lag + 1, l, refs.size))
+    chunk = 8192
+    for b in range(n_blocks):
+        s0, s1 = edges[b], edges[b + 1]
+        m = s1 - s0 - max_lag
+        if m <= 0:
+            raise UserError(f"data: block of {s1 - s0} samples is shorter than {max_lag} lags; "
+                            f"expected a longer record or fewer block_rows/n_blocks")
+        acc = np.zeros((max_lag + 1, l, refs.size))
+        # time chunks keep the working set in cache; one small GEMM per lag
+        for c0 in range(s0, s0 + m, chunk):
+            c1 = min(c0 + chunk, s0 + m)
+            yp = y[c0:c1][:, refs]
+            seg = y[c0:c1 + max_lag]
+            for k in range(max_lag + 1):
+                acc[k] += seg[k:k + (c1 - c0)].T @ yp
+        out[b] = acc / m
+    return out
+
+
+def block_hankel(cov: np.ndarray, block_rows: int) -> np.ndarray:
+    """H[p, q] = R_{p+q+1}, p, q = 0..i-1, from covariances (2i+1, l, r) -> (l i, r i)."""
+    i = block_rows
+    _, l, r = cov.shape
+    h = np.empty((l * i, r * i))
+    for p in range(i):
+        h[p * l:(p + 1) * l] = np.concatenate([cov[p + q + 1] for q in range(i)], axis=1)
+    return h
+
+
+def top_svd(h: np.ndarray, k: int, v0: np.ndarray | None = None, n_iter: int = 1):
+    """Leading k singular triplets of h: exact (LAPACK) or, with a warm start ``v0``, block
+    subspace iteration started from the previous right singular vectors (streaming use)."""
+    if v0 is None:
+        u, s, vt = np.linalg.svd(h, full_matrices=False)
+        return u[:, :k], s[:k], vt[:k].T
+    p = min(h.shape[1], k + 10)
+    v = v0[:, :p]
+    if v.shape[1] < p:
+        rng = np.random.default_rng(0)
+        v = np.column_stack([v, rng.standard_normal((h.shape[1], p - v.shape[1]))])
+    for _ in range(n_iter):
+        q, _ = np.linalg.qr(h @ v)
+        v, _ = np.linalg.qr(h.T @ q)
+    q, _ = np.linalg.qr(h @ v)
+    ub, s, vt = np.linalg.svd(q.T @ h, full_matrices=False)
+    return (q @ ub)[:, :k], s[:k], vt[:k].T
+
+
+def _observability_qr(o: np.ndarray, l: int):
+    q, r = np.linalg.qr(o[:-l])
+    return r, q.T @ o[l:]
+
+
+def _a_matrix(r: np.ndarray, t: np.ndarray, n: int) -> np.ndarray:
+    return solve_triangular(r[:n, :n], t[:n, :n], check_finite=False)
+
+
+# --------------------------------------------------------------------------------------------
+# estimator
+# --------------------------------------------------------------------------------------------
+class SSICov:
+    """Covariance-driven SSI with automatic stabilization-diagram interpretation.
+
+    Parameters: ``block_rows`` i (max lag 2i; pick i so that i/fs covers about one period of the
+    lowest mode or more), ``orders`` model orders (even numbers; max order <= l i),
+    ``decimate_to_hz`` (integer decimation to at least this rate), ``freq_range_hz`` (modes kept;
+    default 0..0.45 fs), ``ref_channels`` (column indices or names used as references; default
+    all), ``criteria`` (:class:`StabilityCriteria`), ``uncertainty`` ("blocks" | "cluster"),
+    ``n_blocks``, ``spectrum`` (compute the singular-value spectrum for the diagram),
+    ``blas_threads`` (BLAS threads during fit; None = leave the process setting alone).
+    """
+
+    def __init__(self, block_rows: int = 40, orders=range(2, 81, 2), decimate_to_hz: float | None = None,
+                 freq_range_hz: tuple[float, float] | None = None, ref_channels=None,
+                 criteria: StabilityCriteria | None = None, uncertainty: str = "blocks",
+                 n_blocks: int = 10, spectrum: bool = True, nperseg: int = 1024,
+                 blas_threads: int | None = 1):
+        if int(block_rows) < 2:
+            raise UserError(f"block_rows: expected an integer >= 2, got {block_rows!r}")
+        self.block_rows = int(block_rows)
+        self.orders = np.array(sorted({int(o) for o in orders}))
+        if self.orders.size == 0 or self.orders[0] < 1:
+            raise UserError(f"orders: expected positive model orders, got {list(orders)!r}")
+        self.decimate_to_hz = decimate_to_hz
+        self.freq_range_hz = freq_range_hz
+        self.ref_channels = ref_channels
+        self.criteria = criteria or StabilityCriteria()
+        if uncertainty not in ("blocks", "cluster"):
+            raise UserError(f"uncertainty: expected 'blocks' or 'cluster', got {uncertainty!r}")
+        self.uncertainty = uncertainty
+        self.n_blocks = int(n_blocks)
+        self.spectrum = bool(spectrum)
+        self.nperseg = int(nperseg)
+        self.blas_threads = blas_threads
+
+    # ---- public --------------------------------------------------------------------------
+    def fit(self, data, fs_hz: float, channels=None) -> ModalResult:
+        """Identify modes from ``data`` (n_samples, n_channels) sampled at ``fs_hz``."""
+        with blas_threads(self.blas_threads):
+            return self._fit(data, fs_hz, channels)
+
+    def _fit(self, data, fs_hz, channels):
+        y, fs, channels = self._prepare(data, fs_hz, channels)
+        refs = self._ref_indices(channels)
+        nb = self.n_blocks if self.uncertainty == "blocks" else 1
+        covs = output_covariances(y, 2 * self.block_rows, refs, n_blocks=max(nb, 1))
+        cov = covs.mean(axis=0)
+        spec = sv_spectrum(y, fs, nperseg=min(self.nperseg, y.shape[0])) if self.spectrum else None
+        res, _ = self.fit_covariances(cov, fs, channels, block_covs=covs if nb > 1 else None,
+                                      spectrum=spec)
+        return res
+
+    def fit_covariances(self, cov: np.ndarray, fs_hz: float, channels, block_covs=None,
+                        spectrum: Spectrum | None = None, v0: np.ndarray | None = None,
+                        uncertainty: str | None = None):
+        """Identify from precomputed covariances (2i+1, l, r); returns (ModalResult, V) where V
+        are the right singular vectors (warm start for the next call in streaming use)."""
+        with blas_threads(self.blas_threads):
+            return self._fit_covariances(cov, fs_hz, channels, block_covs, spectrum, v0, uncertainty)
+
+    def _fit_covariances(self, cov, fs_hz, channels, block_covs, spectrum, v0, uncertainty):
+        i = self.block_rows
+        if cov.shape[0] < 2 * i + 1:
+            raise UserError(f"covariances: expected {2 * i + 1} lags, got {cov.shape[0]}")
+        l = cov.shape[1]
+        channels = tuple(channels)
+        h = block_hankel(cov[:2 * i + 1], i)
+        n_max = int(self.orders[-1])
+        if n_max > min(h.shape):
+            raise UserError(f"orders: max order {n_max} exceeds the Hankel rank bound {min(h.shape)}"
+                            f" (block_rows x channels); expected a lower order or more block_rows")
+        u, s, v = top_svd(h, n_max, v0)
+        sq = np.sqrt(np.maximum(s, 1e-300))
+        o = u * sq
+        rq, tq = _observability_qr(o, l)
+        c = o[:l]
+        rows_o, rows_f, rows_z, rows_s = [], [], [], []
+        for n in self.orders:
+            a = _a_matrix(rq, tq, n)
+            mu, psi = np.linalg.eig(a)
+            keep = mu.imag > 1e-10
+            if not np.any(keep):
+                continue
+            _, f, z = poles_from_eigs(mu[keep], fs_hz)
+            phi = c[:, :n] @ psi[:, keep]
+            rows_o.append(np.full(f.size, n))
+            rows_f.append(f)
+            rows_z.append(z)
+            rows_s.append(phi.T)
+        fr = self.freq_range_hz or (0.0, 0.45 * fs_hz)
+        if not rows_o:
+            table = PoleTable(np.zeros(0, int), np.zeros(0), np.zeros(0), np.zeros((0, l), complex),
+                              np.zeros(0), np.zeros(0, np.int8), np.zeros(0, int))
+            return ModalResult((), table, spectrum, fs_hz, channels, "ssi-cov",
+                               uncertainty or self.uncertainty), v
+        order = np.concatenate(rows_o)
+        freq = np.concatenate(rows_f)
+        zeta = np.concatenate(rows_z)
+        shapes = np.concatenate(rows_s, axis=0)
+        mpcs = np.array([mpc(p) for p in shapes])
+        stable = stability_flags(order, freq, zeta, shapes, self.criteria)
+        clusters, labels = cluster_poles(order, freq, zeta, shapes, mpcs, stable, self.criteria,
+                                         fr, n_orders=self.orders.size)
+        table = PoleTable(order, freq, zeta, shapes, mpcs, stable, labels)
+        unc = uncertainty or self.uncertainty
+        stds = None
+        if unc == "blocks" and block_covs is not None and block_covs.shape[0] >= 3 and clusters:
+            stds = self._block_uncertainty(block_covs, v, s, l, fs_hz, clusters, table)
+        else:
+            unc = "cluster"
+        modes, cshapes = [], []
+        for k, cl in enumerate(clusters):
+            phi = shapes[cl.representative]
+            shape = real_mode_shape(phi)
+            sf, sz = (cl.std_frequency_hz, cl.std_damping_ratio) if stds is None else stds[k]
+            modes.append(Mode(id=f"M{k + 1}", frequency_hz=cl.frequency_hz,
+                              damping_ratio=cl.damping_ratio,
+                              mode_shape={ch: float(x) for ch, x in zip(channels, shape)},
+                              mpc=float(mpcs[cl.representative]), mpd=mpd(phi),
+                              std_frequency_hz=float(sf), std_damping_ratio=float(sz)))
+            cshapes.append(phi)
+        return ModalResult(tuple(modes), table, spectrum, float(fs_hz), channels, "ssi-cov", unc,
+                           tuple(cshapes)), v
+
+    # ---- internals -----------------------------------------------------------------------
+    def _block_uncertainty(self, block_covs, v, s, l, fs_hz, clusters, table):
+        i = self.block_rows
+        inv_sq = 1.0 / np.sqrt(np.maximum(s, 1e-300))
+        nb = block_covs.shape[0]
+        est_f = np.full((len(clusters), nb), np.nan)
+        est_z = np.full((len(clusters), nb), np.nan)
+        # one model order for all modes (the highest representative order: every selected mode
+        # is present there), one eigen-decomposition per block
+        n = int(max(table.order[cl.representative] for cl in clusters))
+        for b in range(nb):
+            hb = block_hankel(block_covs[b], i)
+            ob = (hb[:, :] @ v[:, :n]) * inv_sq[:n]
+            q, r = np.linalg.qr(ob[:-l])
+            a = solve_triangular(r, q.T @ ob[l:], check_finite=False)
+            mu, psi = np.linalg.eig(a)
+            keep = mu.imag > 1e-10
+            _, f, z = poles_from_eigs(mu[keep], fs_hz)
+            ph = ob[:l] @ psi[:, keep]
+            if f.size == 0:
+                continue
+            for k, cl in enumerate(clusters):
+                ref = table.shapes[cl.representative]
+                d = np.abs(f - cl.frequency_hz) / cl.frequency_hz + (1 - mac(ref[:, None], ph)[0])
+                j = int(np.argmin(d))
+                if abs(f[j] - cl.frequency_hz) / cl.frequency_hz < 0.05:
+                    est_f[k, b], est_z[k, b] = f[j], z[j]
+        out = []
+        for k, cl in enumerate(clusters):
+            ok = np.isfinite(est_f[k])
+            if ok.sum() >= 3:
+                m = ok.sum()
+                out.append((float(np.std(est_f[k, ok], ddof=1) / np.sqrt(m)),
+                            float(np.std(est_z[k, ok], ddof=1) / np.sqrt(m))))
+            else:
+                out.append((cl.std_frequency_hz, cl.std_damping_ratio))
+        return out
+
+    def _prepare(self, data, fs_hz, channels):
+        y = np.asarray(data, dtype=float)
+        if y.ndim != 2:
+            raise UserError(f"data: expected a 2-D array (n_samples, n_channels), got shape {y.shape}")
+        if not np.isfinite(fs_hz) or fs_hz <= 0:
+            raise UserError(f"fs_hz: expected a positive sampling rate, got {fs_hz!r}")
+        if not np.all(np.isfinite(y)):
+            raise UserError("data: expected finite samples, found NaN or inf")
+        if channels is None:
+            channels = tuple(f"ch{k}" for k in range(y.shape[1]))
+        channels = tuple(str(c) for c in channels)
+        if len(channels) != y.shape[1]:
+            raise UserError(f"channels: expected {y.shape[1]} names, got {len(channels)}")
+        y, fs = decimate(y, fs_hz, self.decimate_to_hz)
+        y = y - y.mean(axis=0)
+        need = 4 * self.block_rows * max(self.n_blocks if self.uncertainty == "blocks" else 1, 1)
+        if y.shape[0] < need:
+            raise UserError(f"data: {y.shape[0]} samples after decimation, expected at least {need}"
+                            f" for block_rows={self.block_rows}")
+        return y, fs, channels
+
+    def _ref_indices(self, channels):
+        if self.ref_channels is None:
+            return np.arange(len(channels))
+        idx = []
+        for r in self.ref_channels:
+            if isinstance(r, (int, np.integer)):
+                if not 0 <= r < len(channels):
+                    raise UserError(f"ref_channels: index {r} outside 0..{len(channels) - 1}")
+                idx.append(int(r))
+            else:
+                if r not in channels:
+                    raise UserError(f"ref_channels: channel {r!r} not in {list(channels)}")
+                idx.append(channels.index(r))
+        return np.array(idx)

@@ -83,7 +83,8 @@ def welch_edof(n_segments: int, window: np.ndarray, step: int) -> float:
 def profile_psd(position_m: np.ndarray, irregularity_m: np.ndarray,
                 segment_length_m: float | None = None, confidence: float = 0.90,
                 min_wavelength_m: float | None = None,
-                max_wavelength_m: float | None = None) -> ProfileSpectrum:
+                max_wavelength_m: float | None = None,
+                band_margin: float = 1.5) -> ProfileSpectrum:
     """Welch PSD of a profile on a regular grid (NaN = missing).
 
     ``segment_length_m`` defaults to ``4 * max_wavelength_m`` (so the longest valid wavelength
@@ -126,10 +127,12 @@ def profile_psd(position_m: np.ndarray, irregularity_m: np.ndarray,
     lo = wsum * psd / stats.chi2.ppf(1 - alpha / 2, wsum)
     hi = wsum * psd / stats.chi2.ppf(alpha / 2, wsum)
     inb = f > 0
+    # "in band": where the result's band-pass has amplitude gain >= 0.95 (1.5x inside each
+    # half-amplitude corner for the order-4 zero-phase filter), so comparisons see a flat filter
     if min_wavelength_m:
-        inb &= f <= 1.0 / min_wavelength_m
+        inb &= f <= 1.0 / (band_margin * min_wavelength_m)
     if max_wavelength_m:
-        inb &= f >= 1.0 / max_wavelength_m
+        inb &= f >= band_margin / max_wavelength_m
     return ProfileSpectrum(f, psd, lo, hi, inb, float(confidence), float(wsum), int(K_total),
                            float(nper * dx))
 

@@ -1,0 +1,211 @@
+"""``maglev-ros irregularity BAG --out OUT.csv [--json OUT.json] [--plot OUT.png]``.
+
+Guideway irregularity by the inertial reference method from a pass recording: magnet
+accelerations + gaps + vehicle position (see maglev_ros.irregularity.profile). The CSV has
+columns ``position_m,irregularity_m`` with the band, filter corner, kind and warnings in ``#``
+header lines; the JSON holds the same plus the spectrum summary (Welch PSD with confidence band,
+comparison with the FRA / German reference spectra, EN 13848 D1/D2 RMS).
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from maglev_ros.errors import ContractError, UserError
+
+NAME = "irregularity"
+HELP = "guideway irregularity profile from magnet accelerations and gaps (inertial reference)"
+ORDER = 50
+
+
+def add_arguments(p) -> None:
+    p.add_argument("bag", help="recording (rosbag2 directory or file)")
+    p.add_argument("--out", required=True, help="output CSV (position_m,irregularity_m)")
+    p.add_argument("--json", dest="json_out", default=None, help="also write a JSON summary")
+    p.add_argument("--plot", default=None, help="also write a PNG: profile and PSD vs references")
+    p.add_argument("--highpass-hz", type=float, default=0.2,
+                   help="corner of the time-domain high-pass [Hz] (default 0.2)")
+    p.add_argument("--spacing-m", type=float, default=0.25, help="profile grid spacing [m]")
+    p.add_argument("--magnets", default=None,
+                   help="comma-separated 1-based magnet numbers to use (default: all)")
+    p.add_argument("--magnet-length-m", type=float, default=3.0,
+                   help="shortest trusted wavelength from the magnet length [m] (default 3)")
+    p.add_argument("--band-speed-mps", type=float, default=None,
+                   help="speed that sets the longest wavelength (default: 5th percentile of speed)")
+    p.add_argument("--max-wavelength-m", type=float, default=None,
+                   help="fix the longest wavelength instead [m]; slower stretches are dropped")
+    p.add_argument("--confidence", type=float, default=0.90, help="PSD confidence level")
+
+
+def _channel_pairs(md, accel, gap, topic_a, topic_g):
+    """magnet -> (accel channel, gap channel) from the metadata sensors; None: pair by order."""
+    pairs_a, pairs_g = {}, {}
+    for sid, s in md.sensors.items():
+        if s.magnet is None:
+            continue
+        if s.topic == topic_a and sid in accel.channels and (s.direction in (None, "vertical")):
+            pairs_a.setdefault(s.magnet, sid)
+        if s.topic == topic_g and sid in gap.channels:
+            pairs_g.setdefault(s.magnet, sid)
+    both = sorted(set(pairs_a) & set(pairs_g))
+    if not both:
+        return None
+    return {m: (pairs_a[m], pairs_g[m]) for m in both}
+
+
+def _check_units(cd, topic, want, channels):
+    for ch in channels:
+        u = cd.units[cd.channels.index(ch)] if getattr(cd, "units", None) else want
+        if u != want:
+            raise ContractError(f"{topic}: channel {ch} has unit {u!r}, expected {want!r}")
+
+
+def read_inputs(path: str):
+    """Read the three vehicle topics and the metadata; returns a dict for InertialProfiler.fit."""
+    from maglev_ros.bag_reader import BagReader
+    from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                     TOPIC_VEHICLE_POSITION)
+    if not Path(path).exists():
+        raise UserError(f"{path}: no such bag")
+    with BagReader(path) as r:
+        md = r.metadata
+        for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
+            if topic not in r.topics:
+                raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
+                                    "vehicle accel, gap and position)")
+        accel = r.read_topic(TOPIC_VEHICLE_ACCEL)
+        gap = r.read_topic(TOPIC_VEHICLE_GAP)
+        pos = r.read_topic(TOPIC_VEHICLE_POSITION)
+    offsets = md.magnet_offsets_m
+    if not offsets:
+        raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")
+    g0 = md.nominal_gap_m if md.nominal_gap_m is not None else 0.010
+    pairs = _channel_pairs(md, accel, gap, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP)
+    used_a = [a for a, _ in pairs.values()] if pairs else list(accel.channels[:len(offsets)])
+    used_g = [g for _, g in pairs.values()] if pairs else list(gap.channels[:len(offsets)])
+    _check_units(accel, TOPIC_VEHICLE_ACCEL, "m/s^2", used_a)
+    _check_units(gap, TOPIC_VEHICLE_GAP, "m", used_g)
+    for ch in ("position_m", "speed_mps"):
+        if ch not in pos.channels:
+            raise ContractError(f"{path}: {TOPIC_VEHICLE_POSITION}: channel {ch} missing")
+    return {"accel": accel, "gap": gap, "position": pos, "magnet_offsets_m": offsets,
+            "nominal_gap_m": g0, "channel_pairs": pairs}
+
+
+def analyse(inputs: dict, args):
+    from maglev_ros.irregularity.profile import InertialProfiler
+    from maglev_ros.irregularity.spectra import band_rms, compare_reference, profile_psd
+    mags = None
+    if args.magnets:
+        try:
+            mags = [int(m) for m in str(args.magnets).split(",") if m.strip()]
+        except ValueError:
+            raise UserError(f"--magnets: expected comma-separated integers, got {args.magnets!r}")
+    prof = InertialProfiler(highpass_hz=args.highpass_hz, spacing_m=args.spacing_m, magnets=mags,
+                            magnet_length_m=args.magnet_length_m,
+                            band_speed_mps=args.band_speed_mps,
+                            max_wavelength_m=args.max_wavelength_m)
+    res = prof.fit(**inputs)
+    spec, comp, notes = None, [], []
+    try:
+        spec = profile_psd(res.position_m, res.irregularity_m, confidence=args.confidence,
+                           min_wavelength_m=res.min_wavelength_m,
+                           max_wavelength_m=res.max_wavelength_m)
+        comp = compare_reference(spec)
+    except UserError as exc:
+        notes.append(f"no spectrum: {exc}")
+    rms = band_rms(res.position_m, res.irregularity_m, res.min_wavelength_m,
+                   res.max_wavelength_m, spectrum=spec)
+    return res, spec, comp, rms, notes
+
+
+def header_lines(res, rms, bag) -> list[str]:
+    lines = [f"# maglev-ros irregularity of {bag}",
+             f"# kind: {res.kind} (loaded: includes girder deflection under the vehicle)",
+             f"# valid band: {res.min_wavelength_m:.4g} m <= wavelength <= "
+             f"{res.max_wavelength_m:.4g} m (half-amplitude corners of a zero-phase Butterworth "
+             f"order {res.filter_order} band-pass)",
+             f"# time high-pass corner: {res.highpass_hz:g} Hz; band speed "
+             f"{res.band_speed_mps:.4g} m/s; grid spacing {res.spacing_m:g} m",
+             "# magnets: " + ", ".join(f"{n} at {o:+.4g} m" for n, o in
+                                       zip(res.magnet_names, res.magnet_offsets_m))]
+    for a, b, c in res.agreement:
+        lines.append(f"# agreement {a}-{b}: correlation {c:.4f}")
+    for d in rms:
+        if d["available"]:
+            lines.append(f"# EN 13848 {d['band']} ({d['min_wavelength_m']:g}-"
+                         f"{d['max_wavelength_m']:g} m): rms {d['rms_m']:.4g} m")
+        else:
+            lines.append(f"# EN 13848 {d['band']}: unavailable ({d['reason']})")
+    for w in res.warnings:
+        lines.append(f"# warning {w.kind} [{w.channel}]: {w.message}")
+    lines.append("# empty irregularity_m: no valid estimate at that position")
+    return lines
+
+
+def write_csv(path: str, res, rms, bag) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        for line in header_lines(res, rms, bag):
+            fh.write(line.replace("\n", " ") + "\n")
+        fh.write("position_m,irregularity_m\n")
+        for x, y in zip(res.position_m, res.irregularity_m):
+            fh.write(f"{x:.4f},{'' if not math.isfinite(y) else f'{y:.6e}'}\n")
+
+
+def summary_dict(res, spec, comp, rms, notes, bag) -> dict:
+    d = {"bag": str(bag), "profile": res.to_dict(include_profile=True),
+         "spectrum": None if spec is None else spec.to_dict(include_arrays=True),
+         "reference_comparison": comp, "band_rms": rms, "notes": notes}
+    return d
+
+
+def write_plot(path: str, res, spec, comp) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from maglev_ros.twin.irregularity_psd import psd_by_name
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(9, 7))
+    a1.plot(res.position_m, res.irregularity_m * 1e3, lw=0.8, label="mean of magnets")
+    a1.set_xlabel("position [m]")
+    a1.set_ylabel("irregularity [mm]")
+    a1.set_title(f"{res.kind} profile, band {res.min_wavelength_m:.3g}-"
+                 f"{res.max_wavelength_m:.3g} m, f_c {res.highpass_hz:g} Hz")
+    a1.grid(True, alpha=0.3)
+    if spec is not None:
+        f = spec.freq_cycles_per_m
+        m = f > 0
+        a2.loglog(f[m], spec.psd_m2_per_cycle_per_m[m], "k", lw=1, label="measured (Welch)")
+        a2.fill_between(f[m], spec.lower_m2_per_cycle_per_m[m], spec.upper_m2_per_cycle_per_m[m],
+                        color="0.7", alpha=0.5, label=f"{spec.confidence:.0%} confidence")
+        for name in ("fra4", "fra6", "german_low", "german_high"):
+            a2.loglog(f[m], psd_by_name(name).per_cycle(f[m]), lw=0.8, ls="--", label=name)
+        a2.axvspan(1.0 / res.max_wavelength_m, 1.0 / res.min_wavelength_m, color="g", alpha=0.07,
+                   label="valid band")
+        a2.legend(fontsize=7)
+    a2.set_xlabel("spatial frequency [cycles/m]")
+    a2.set_ylabel("PSD [m^2/(cycle/m)]")
+    a2.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args) -> int:
+    inputs = read_inputs(args.bag)
+    res, spec, comp, rms, notes = analyse(inputs, args)
+    write_csv(args.out, res, rms, args.bag)
+    if args.json_out:
+        with open(args.json_out, "w", encoding="utf-8") as fh:
+            json.dump(summary_dict(res, spec, comp, rms, notes, args.bag), fh, indent=1,
+                      allow_nan=False)
+    if args.plot:
+        write_plot(args.plot, res, spec, comp)
+    v = res.valid
+    rms_all = float(np.sqrt(np.mean(res.irregularity_m[v] ** 2))) if v.any() else float("nan")
+    print(f"irregularity: {int(v.sum())} of {v.size} points valid, rms {rms_all * 1e3:.3g} mm, "
+          f"band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m, "
+          f"{len(res.warnings)} warning(s); wrote {args.out}")
+    return 0

@@ -193,7 +193,7 @@ class _StepSolver:
     K_eff per step; each caller gets the faster path for its column count."""
 
     def __init__(self, n: int, n_cols: int) -> None:
-        self.use_inverse = n_cols >= n
+        self.use_inverse = n_cols >= n and n <= 400
 
     def factor(self, a: np.ndarray) -> None:
         if self.use_inverse:

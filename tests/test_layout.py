@@ -1,0 +1,53 @@
+"""Layout rules: the science core never imports rclpy; the contract message is carried unchanged."""
+import os
+import pkgutil
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CONTRACT_MSG = ROOT.parent / "shared" / "contract" / "msg" / "SensorBlock.msg"
+
+
+def _core_modules():
+    import maglev_ros
+    for info in pkgutil.walk_packages(maglev_ros.__path__, "maglev_ros."):
+        if not info.name.startswith("maglev_ros.nodes"):
+            yield info.name
+
+
+def test_no_rclpy_import_in_core_source():
+    pattern = re.compile(r"^\s*(import rclpy|from rclpy)", re.M)
+    offenders = [str(p.relative_to(ROOT)) for p in (ROOT / "maglev_ros").rglob("*.py")
+                 if "nodes" not in p.relative_to(ROOT / "maglev_ros").parts[:1]
+                 and pattern.search(p.read_text())]
+    assert offenders == []
+
+
+def test_importing_every_core_module_leaves_rclpy_unloaded():
+    mods = sorted(_core_modules())
+    code = ("import importlib, sys\n"
+            f"for m in {mods!r}:\n    importlib.import_module(m)\n"
+            "print('rclpy' in sys.modules)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == "False"
+
+
+def _fields(text):
+    out = []
+    for line in text.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            out.append(" ".join(line.split()))
+    return out
+
+
+def test_sensorblock_msg_matches_the_contract():
+    ours = (ROOT / "msg_defs" / "msg" / "SensorBlock.msg").read_text()
+    if CONTRACT_MSG.exists():
+        assert _fields(ours) == _fields(CONTRACT_MSG.read_text())
+    assert _fields(ours) == ["std_msgs/Header header", "float64 sample_rate_hz",
+                             "string[] channels", "string[] units", "float32[] data"]

@@ -6,6 +6,7 @@ times, best of --repeat runs:
   iter       BagReader.iter_blocks (Block per message)
   read_topic BagReader.read_topic (whole topic to float64 arrays with times)
   check      BagReader.check (full contract check)
+  and iter/read_topic again with fast_decode=False (rosbags' deserialiser instead of ours)
 (CPU time of this process, best of runs, peer and ours interleaved in the same run)
 and prints blocks/s, samples/s, real-time ratio and the ratio to the peer (target >= 0.8).
 
@@ -67,16 +68,16 @@ def peer(path: Path) -> int:
     return n
 
 
-def ours_iter(path: Path) -> int:
+def ours_iter(path: Path, fast: bool = True) -> int:
     n = 0
-    with BagReader(path) as r:
+    with BagReader(path, fast_decode=fast) as r:
         for _topic, blk in r.iter_blocks(TOPIC_GUIDEWAY_ACCEL):
             n += blk.data.size
     return n
 
 
-def ours_read_topic(path: Path) -> int:
-    with BagReader(path) as r:
+def ours_read_topic(path: Path, fast: bool = True) -> int:
+    with BagReader(path, fast_decode=fast) as r:
         return r.read_topic(TOPIC_GUIDEWAY_ACCEL).data.size
 
 
@@ -118,7 +119,9 @@ def main() -> int:
         fns = (("rosbags AnyReader+deserialize (peer)", peer),
                ("BagReader.iter_blocks", ours_iter),
                ("BagReader.read_topic", ours_read_topic),
-               ("BagReader.check", ours_check))
+               ("BagReader.check", ours_check),
+               ("iter_blocks, rosbags decoder", lambda p: ours_iter(p, fast=False)),
+               ("read_topic, rosbags decoder", lambda p: ours_read_topic(p, fast=False)))
         best = {name: float("inf") for name, _ in fns}
         for _ in range(args.repeat):   # interleave so load changes hit every reader alike
             for name, fn in fns:

@@ -27,7 +27,8 @@ import numpy as np
 from maglev_ros.contract import (SENSORBLOCK_TYPE, STRING_TYPE, TOPIC_METADATA, Issue, Metadata,
                                  check_units, metadata_issues, parse_metadata)
 from maglev_ros.errors import ContractError, UserError
-from maglev_ros.sensor_block import Block, typestore
+from maglev_ros.sensor_block import (Block, DecodedBlock, SensorBlockDecoder,
+                                     same_sensorblock_definition, typestore)
 
 __all__ = ["BagReader", "TopicInfo", "ChannelData", "Issue", "SENSORBLOCK_FIELDS"]
 
@@ -122,11 +123,16 @@ class BagReader:
     ``strict=True``: a missing or invalid metadata message raises ContractError on open, and
     :meth:`read_topic` raises on NaN/inf or malformed blocks. ``strict=False`` records such
     problems as issues (``metadata`` may then be None) and skips malformed blocks.
+    ``fast_decode``: use :class:`~maglev_ros.sensor_block.SensorBlockDecoder` when the bag's
+    SensorBlock definition is ours (False: always rosbags' deserialiser).
     """
 
-    def __init__(self, path: str | os.PathLike, strict: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike, strict: bool = True,
+                 fast_decode: bool = True) -> None:
         self.path = Path(path)
         self.strict = strict
+        self.fast_decode = fast_decode
+        self._fast = False
         self.metadata: Metadata | None = None
         self.topics: dict[str, TopicInfo] = {}
         self.open_issues: list[Issue] = []
@@ -178,6 +184,7 @@ class BagReader:
         self._is2 = reader.is2
         ts = reader.typestore
         self._deser = ts.deserialize_cdr if self._is2 else ts.deserialize_ros1
+        self._fast = self.fast_decode and self._is2 and same_sensorblock_definition(ts)
         try:
             self._conns = defaultdict(list)
             for c in reader.connections:
@@ -378,47 +385,64 @@ class BagReader:
                                                                                duration_s):
             yield topic, Block(stamp, frame, rate, chans, units, data)
 
+    def _decoder(self):
+        """A function raw -> DecodedBlock (fast path when the bag's SensorBlock is ours; one
+        instance per topic so the channel/unit cache sees that topic's repeating strings)."""
+        deser = self._deser
+        fast = SensorBlockDecoder().decode if self._fast else None
+        last = [None, None, (), ()]     # rosbags path: reuse tuples while the lists repeat
+
+        def decode(raw):
+            if fast is not None:
+                out = fast(raw)
+                if out is not None:
+                    return out
+            msg = deser(raw, SENSORBLOCK_TYPE)
+            chans, units = msg.channels, msg.units
+            if chans != last[0] or units != last[1]:
+                last[:] = [chans, units, tuple(chans), tuple(units)]
+            st = msg.header.stamp
+            data = msg.data
+            if not isinstance(data, np.ndarray) or data.dtype != np.float32:
+                data = np.asarray(data, dtype=np.float32)
+            return DecodedBlock(st.sec * 1_000_000_000 + st.nanosec, msg.header.frame_id,
+                                float(msg.sample_rate_hz), last[2], last[3], data)
+        return decode
+
     def _iter_parts(self, topics, start_s, duration_s):
         """iter_blocks without the Block wrapper: (topic, stamp_ns, frame, rate, channels, units, data)."""
         conns = self._select(topics, sensor_only=True)
         if not conns:
             return
         ws, we, log_start, log_stop = self._window(conns, start_s, duration_s)
-        deser = self._deser
-        cache: dict[str, tuple] = {}
+        decoders: dict[str, object] = {}
         strict = self.strict
         for conn, _log_ns, raw in self._messages(conns, start=log_start, stop=log_stop):
             topic = conn.topic
+            dec = decoders.get(topic)
+            if dec is None:
+                dec = decoders[topic] = self._decoder()
             try:
-                msg = deser(raw, SENSORBLOCK_TYPE)
+                b = dec(raw)
             except Exception as exc:  # noqa: BLE001
                 if strict:
                     raise self._fail(f"{topic}: cannot decode SensorBlock: {_one_line(exc)}") from None
                 continue
-            chans, units, flat = msg.channels, msg.units, msg.data
-            prev = cache.get(topic)
-            if prev is not None and prev[0] == chans and prev[1] == units:
-                ctuple, utuple = prev[2], prev[3]
-            else:
-                ctuple, utuple = tuple(chans), tuple(units)
-                cache[topic] = (chans, units, ctuple, utuple)
-            nch = len(ctuple)
-            if nch == 0 or flat.size % nch or len(utuple) != nch or not msg.sample_rate_hz > 0:
+            flat = b.data
+            nch = len(b.channels)
+            rate = b.sample_rate_hz
+            if nch == 0 or flat.size % nch or len(b.units) != nch or not rate > 0:
                 if strict:
-                    raise self._fail(f"{topic}: malformed SensorBlock at stamp "
-                                     f"{msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}: "
-                                     f"{flat.size} values, {nch} channels, {len(utuple)} units, "
-                                     f"rate {msg.sample_rate_hz}")
+                    raise self._fail(f"{topic}: malformed SensorBlock at t={b.stamp_ns * 1e-9:.6f} s: "
+                                     f"{flat.size} values, {nch} channels, {len(b.units)} units, "
+                                     f"rate {rate}")
                 continue
-            st = msg.header.stamp
-            stamp = st.sec * 1_000_000_000 + st.nanosec
+            stamp = b.stamp_ns
             if ws is not None:
-                n = flat.size // nch
-                end = stamp + int(n / msg.sample_rate_hz * 1e9)
+                end = stamp + int(flat.size // nch / rate * 1e9)
                 if end <= ws or (we is not None and stamp >= we):
                     continue
-            yield (topic, stamp, msg.header.frame_id, msg.sample_rate_hz, ctuple, utuple,
-                   flat.reshape(-1, nch))
+            yield (topic, stamp, b.frame_id, rate, b.channels, b.units, flat.reshape(-1, nch))
 
     def iter_raw(self, topics: Iterable[str] | str | None = None, start_s: float | None = None,
                  duration_s: float | None = None) -> Iterator[tuple[str, str, int, bytes]]:
@@ -655,20 +679,22 @@ class BagReader:
         recs: dict[str, list] = defaultdict(list)
         seen_lists: dict[str, set] = defaultdict(set)
         nan_stats: dict[tuple, list] = {}
-        deser = self._deser
+        decoders: dict[str, object] = {}
         for conn, _log_ns, raw in self._messages(conns):
             topic = conn.topic
+            dec = decoders.get(topic)
+            if dec is None:
+                dec = decoders[topic] = self._decoder()
             try:
-                msg = deser(raw, SENSORBLOCK_TYPE)
+                b = dec(raw)
             except Exception as exc:  # noqa: BLE001
                 add(Issue("error", topic, None, None, "undecodable", f"cannot decode: {_one_line(exc)}"))
                 continue
-            st = msg.header.stamp
-            stamp = st.sec * 1_000_000_000 + st.nanosec
+            stamp = b.stamp_ns
             t_s = stamp * 1e-9
-            chans, units = tuple(msg.channels), tuple(msg.units)
-            flat = msg.data
-            rate = float(msg.sample_rate_hz)
+            chans, units = b.channels, b.units
+            flat = b.data
+            rate = float(b.sample_rate_hz)
             nch = len(chans)
             key = (chans, units)
             if key not in seen_lists[topic]:

@@ -2,11 +2,17 @@
 
 The typestore is rosbags' ROS 2 Humble store with every ``maglev_msgs`` type registered from
 its .msg text, so bags are read and written without rclpy (the science core never imports it).
+
+:class:`SensorBlockDecoder` is a hand-written little-endian CDR decoder for SensorBlock only:
+rosbags' generic decoder re-decodes the channel/unit strings of every message, which dominates
+read time; ours reuses them when their bytes repeat. It is used only when the bag's SensorBlock
+definition equals ours, is checked against rosbags in the tests, and falls back to rosbags.
 """
 from __future__ import annotations
 
 import functools
 import os
+import struct
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +24,8 @@ from maglev_ros.errors import ContractError, UserError
 
 __all__ = ["Block", "MSG_PACKAGE", "MSG_NAMES", "msg_dir", "msg_text", "typestore",
            "msgtype_name", "block_to_msg", "msg_to_block", "string_msg", "make_header",
-           "serialize", "deserialize", "SENSORBLOCK_TYPE", "STRING_TYPE"]
+           "serialize", "deserialize", "SENSORBLOCK_TYPE", "STRING_TYPE", "SensorBlockDecoder",
+           "DecodedBlock"]
 
 MSG_PACKAGE = "maglev_msgs"
 # Order matters for registration only through dependencies (ModalMode before ModalEstimate).
@@ -204,3 +211,99 @@ def serialize(msg, msgtype: str, store=None) -> bytes:
 def deserialize(raw: bytes, msgtype: str, store=None):
     store = store or typestore()
     return store.deserialize_cdr(raw, msgtype_name(msgtype))
+
+
+# ------------------------------------------------------------------------ fast CDR decoder
+_I32U32 = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
+_F64 = struct.Struct("<d")
+
+
+class DecodedBlock:
+    """What :class:`SensorBlockDecoder` returns (attribute access like a rosbags message)."""
+
+    __slots__ = ("stamp_ns", "frame_id", "sample_rate_hz", "channels", "units", "data")
+
+    def __init__(self, stamp_ns, frame_id, sample_rate_hz, channels, units, data):
+        self.stamp_ns = stamp_ns
+        self.frame_id = frame_id
+        self.sample_rate_hz = sample_rate_hz
+        self.channels = channels
+        self.units = units
+        self.data = data
+
+
+class SensorBlockDecoder:
+    """Decode little-endian CDR SensorBlock bytes (ROS 2 layout of SensorBlock.msg).
+
+    ``decode(raw)`` returns a :class:`DecodedBlock` (channels/units as tuples, data a read-only
+    float32 view on ``raw``) or None when the bytes are not little-endian CDR or do not parse;
+    the caller then uses rosbags. Offsets are relative to the payload after the 4-byte
+    encapsulation header, as CDR alignment requires.
+    """
+
+    def __init__(self) -> None:
+        self._pos = -1
+        self._region = b""
+        self._strings = ((), (), 0)
+
+    def decode(self, raw) -> DecodedBlock | None:
+        try:
+            return self._decode(raw)
+        except (struct.error, UnicodeDecodeError, ValueError, IndexError):
+            return None
+
+    @staticmethod
+    def _strings_at(raw, pos: int):
+        pos = (pos + 3) & ~3
+        (n,) = _U32.unpack_from(raw, 4 + pos)
+        pos += 4
+        out = []
+        for _ in range(n):
+            pos = (pos + 3) & ~3
+            (ln,) = _U32.unpack_from(raw, 4 + pos)
+            pos += 4
+            if ln < 1 or 4 + pos + ln > len(raw):
+                raise ValueError("bad string")
+            out.append(raw[4 + pos:4 + pos + ln - 1].decode())
+            pos += ln
+        return tuple(out), pos
+
+    def _decode(self, raw) -> DecodedBlock | None:
+        if len(raw) < 24 or raw[0] != 0 or raw[1] != 1:
+            return None
+        sec, nsec = _I32U32.unpack_from(raw, 4)
+        (flen,) = _U32.unpack_from(raw, 12)
+        if flen < 1:
+            return None
+        frame_id = raw[16:15 + flen].decode()
+        pos = (12 + flen + 7) & ~7
+        (rate,) = _F64.unpack_from(raw, 4 + pos)
+        pos += 8
+        if pos == self._pos and raw[4 + pos:4 + self._strings[2]] == self._region:
+            channels, units, pos = self._strings
+        else:
+            start = pos
+            channels, pos = self._strings_at(raw, pos)
+            units, pos = self._strings_at(raw, pos)
+            self._pos = start
+            self._region = bytes(raw[4 + start:4 + pos])
+            self._strings = (channels, units, pos)
+        pos = (pos + 3) & ~3
+        (n,) = _U32.unpack_from(raw, 4 + pos)
+        pos += 4
+        end = 4 + pos + 4 * n
+        if end > len(raw) or end + 3 < len(raw):
+            return None
+        data = np.frombuffer(raw, dtype="<f4", count=n, offset=4 + pos)
+        return DecodedBlock(sec * 1_000_000_000 + nsec, frame_id, rate, channels, units, data)
+
+
+def same_sensorblock_definition(store) -> bool:
+    """True when ``store`` defines SensorBlock (and its Header/Time) exactly like ours."""
+    ours = typestore().fielddefs
+    try:
+        return all(store.fielddefs[t] == ours[t] for t in
+                   (SENSORBLOCK_TYPE, "std_msgs/msg/Header", "builtin_interfaces/msg/Time"))
+    except KeyError:
+        return False

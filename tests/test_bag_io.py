@@ -472,3 +472,51 @@ def test_channel_data_accessors():
     assert cd.unit("b") == "m/s"
     with pytest.raises(UserError, match="no channel 'c'"):
         cd.channel("c")
+
+
+# ------------------------------------------------------------------ fast SensorBlock decoder
+@pytest.mark.parametrize("frame", ["", "g", "vehicle", "gü"])
+@pytest.mark.parametrize("channels", [("a",), ("G1LV", "xxxxxxx", "é"), tuple(f"C{i}" for i in range(17))])
+@pytest.mark.parametrize("n", [0, 1, 7])
+def test_fast_decoder_matches_rosbags(frame, channels, n):
+    from maglev_ros.sensor_block import SensorBlockDecoder
+
+    store = typestore()
+    rng = np.random.default_rng(n)
+    dec = SensorBlockDecoder()
+    for rep in range(3):                      # repeated strings exercise the cache
+        blk = Block.from_arrays(-5 * 10**9 + rep if frame else 1_700_000_000_123_456_789 + rep,
+                                1234.5, channels, ["m"] * len(channels),
+                                rng.standard_normal((n, len(channels))), frame)
+        raw = bytes(store.serialize_cdr(block_to_msg(blk), SENSORBLOCK_TYPE))
+        ref = store.deserialize_cdr(raw, SENSORBLOCK_TYPE)
+        got = dec.decode(raw)
+        assert got.stamp_ns == ref.header.stamp.sec * 10**9 + ref.header.stamp.nanosec
+        assert got.frame_id == ref.header.frame_id == frame
+        assert got.sample_rate_hz == ref.sample_rate_hz
+        assert got.channels == tuple(ref.channels) and got.units == tuple(ref.units)
+        np.testing.assert_array_equal(got.data, ref.data)
+    # big-endian or garbage -> None (caller falls back to rosbags)
+    assert dec.decode(b"\x00\x00" + raw[2:]) is None
+    assert dec.decode(raw[:-8]) is None
+
+
+def test_fast_and_rosbags_decoding_agree_on_faulty_bag(tmp_path, topics, meta):
+    faults = Faults(duplicate={GUIDEWAY_ACCEL: [1]}, swap={VEHICLE_GAP: [2]},
+                    nan={VEHICLE_ACCEL: [(1, 1, 1)]}, units={GUIDEWAY_ACCEL: {"G1LV": "mm"}},
+                    short_units={VEHICLE_POSITION: [0]}, drop={VEHICLE_GAP: [5]})
+    path = write_foreign_bag(tmp_path / "b", meta, topics, block_samples=[30, 70], faults=faults)
+    results = []
+    for fast in (True, False):
+        with BagReader(path, strict=False, fast_decode=fast) as bag:
+            assert bag._fast is fast
+            blocks = list(bag.iter_blocks())
+            cds = [bag.read_topic(t) for t in (GUIDEWAY_ACCEL, VEHICLE_GAP, VEHICLE_ACCEL)]
+            results.append((blocks, cds, bag.check()))
+    (b1, c1, i1), (b2, c2, i2) = results
+    assert [(t, b) for t, b in b1] == [(t, b) for t, b in b2]
+    for x, y in zip(c1, c2):
+        np.testing.assert_array_equal(x.data, y.data)
+        np.testing.assert_array_equal(x.time_s, y.time_s)
+        assert x.issues == y.issues
+    assert i1 == i2 and len(i1) >= 6

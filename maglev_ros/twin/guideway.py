@@ -170,18 +170,49 @@ class ModalBasis:
     def n_modes(self) -> int:
         return int(self.freq_hz.size)
 
+    def _table(self) -> tuple:
+        """Mode shapes as nodal values on the full nodal DOF list of each span, (n_spans, ndof, nm)."""
+        tab = self.__dict__.get("_tab")
+        if tab is None:
+            n_el = max(fe.n_elements for fe in self.spans_fe)
+            ndof = 2 * (n_el + 1)
+            T = np.zeros((len(self.spans_fe), ndof, self.n_modes))
+            col = 0
+            for k, (fe, vec) in enumerate(zip(self.spans_fe, self.vectors)):
+                nmod = vec.shape[1]
+                T[k][fe.free_dofs, col:col + nmod] = vec
+                col += nmod
+            starts = np.array([fe.span.start_m for fe in self.spans_fe])
+            ends = np.array([fe.span.end_m for fe in self.spans_fe])
+            nels = np.array([fe.n_elements for fe in self.spans_fe])
+            les = np.array([fe.element_length_m for fe in self.spans_fe])
+            order = np.argsort(starts)
+            tab = (T, starts, ends, nels, les, order)
+            object.__setattr__(self, "_tab", tab)
+        return tab
+
     def _eval(self, x_m, deriv: bool) -> np.ndarray:
+        T, starts, ends, nels, les, order = self._table()
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
-        out = np.zeros((x.size, self.n_modes))
-        col = 0
-        for fe, vec in zip(self.spans_fe, self.vectors):
-            nmod = vec.shape[1]
-            sp = fe.span
-            inside = _inside(x, sp, last=(fe is self.spans_fe[-1]))
-            if nmod and inside.any():
-                mat = fe.slope_matrix(x[inside]) if deriv else fe.shape_matrix(x[inside])
-                out[np.flatnonzero(inside), col:col + nmod] = mat @ vec
-            col += nmod
+        # span of each point: last span (by start) with start <= x; half-open except the last
+        pos = np.searchsorted(starts[order], x, side="right") - 1
+        valid = pos >= 0
+        k = order[np.clip(pos, 0, None)]
+        last = k == order[-1]
+        valid &= (x < ends[k]) | (last & (x <= ends[k]))
+        le = les[k]
+        xl = x - starts[k]
+        e = np.clip(np.floor(xl / le).astype(np.int64), 0, nels[k] - 1)
+        xi = xl / le - e
+        xi2 = xi * xi
+        if deriv:
+            H = (((-6 * xi + 6 * xi2) / le), 1 - 4 * xi + 3 * xi2, ((6 * xi - 6 * xi2) / le), -2 * xi + 3 * xi2)
+        else:
+            xi3 = xi2 * xi
+            H = (1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3, le * (-xi2 + xi3))
+        out = H[0][:, None] * T[k, 2 * e] + H[1][:, None] * T[k, 2 * e + 1] \
+            + H[2][:, None] * T[k, 2 * e + 2] + H[3][:, None] * T[k, 2 * e + 3]
+        out[~valid] = 0.0
         return out
 
     def shapes_at(self, x_m) -> np.ndarray:

@@ -230,3 +230,55 @@ def test_monte_carlo_batches_equal_and_bad_inputs():
         linearised_magnet_gains(6e4, 25.0, 0.01, 1000.0, 40.0, 0.1)
     d = PseudoExcitation(psd, n_freq=3, time_step_s=1e-3).run(sysm, 0.01).to_dict()
     assert d["method"] == "pseudo-excitation" and len(d["time_s"]) == 11
+
+
+# ---------------------------------------------------------------- adapter to the twin's model
+def _twin_system(n_spans, speed, **kw):
+    design = pytest.importorskip("maglev_ros.twin.design")
+    pytest.importorskip("maglev_ros.twin.levitation")
+    from maglev_ros.twin.pem import coupled_twin_system
+
+    cfg = design.twin_config()
+    return cfg, design.default_line(cfg, n_spans), coupled_twin_system(cfg, design.default_line(cfg, n_spans),
+                                                                       speed_mps=speed, **kw)
+
+
+def test_twin_adapter_quasi_static_mean_matches_fe_static_solution():
+    from maglev_ros.twin.guideway import Guideway
+    from maglev_ros.twin.levitation import build_vehicle
+
+    speed = 2.0
+    cfg, line, sysm = _twin_system(2, speed)
+    span = line[1]
+    xs = 0.5 * (span.start_m + span.end_m)
+    dur = (span.end_m - sysm.start_m + 20.0) / speed
+    res = PseudoExcitation(ip.maglev_guideway_001(), n_freq=1, time_step_s=5e-3).run(sysm, dur)
+    f0 = build_vehicle(cfg).levitation.static_force_n
+    gw = Guideway(line, cfg.numerics.n_elements_per_span)
+    x_ref = sysm.position_m(res.time_s[::20])
+    ref = np.array([gw.static_displacement(xr + sysm.input_offsets_m, -f0, [xs])[0] for xr in x_ref])
+    got = res.mean[::20, res.output_index(f"guideway_disp@{xs:g}")]
+    peak = np.abs(ref).max()
+    assert peak > 1e-4
+    # modal truncation (modes < 300 Hz) and slow-speed dynamics: a few % of the peak
+    assert np.abs(got - ref).max() < 0.04 * peak
+    assert got.min() == pytest.approx(ref.min(), rel=0.03)
+
+
+def test_twin_adapter_pem_matches_monte_carlo():
+    speed, n_samples = 30.0, 500
+    cfg, line, sysm = _twin_system(2, speed)
+    psd = ip.maglev_guideway_001()
+    band_m = (1.0, 20.0)
+    dur = (line[-1].end_m - sysm.start_m + 5.0) / speed
+    pem = PseudoExcitation(psd, band_m, n_freq=160, time_step_s=1e-3).run(sysm, dur)
+    x, r = ip.random_profile(psd, 110.0, 0.02, band_m, np.random.default_rng(21), n_samples=n_samples,
+                             start_m=sysm.start_m + sysm.input_offsets_m.min() - 1.0)
+    mc = MonteCarlo(time_step_s=1e-3).run(sysm, x, r, dur)
+    xs = 0.5 * (line[1].start_m + line[1].end_m)
+    for name in ("car_body_accel", f"guideway_accel@{xs:g}", "gap1"):
+        k = pem.output_index(name)
+        w = pem.sd[:, k] > 0.2 * pem.sd[:, k].max()
+        rms_ratio = np.sqrt(np.mean(mc.rms[w, k] ** 2) / np.mean(pem.rms[w, k] ** 2))
+        sd_ratio = np.sqrt(np.mean(mc.sd[w, k] ** 2) / np.mean(pem.sd[w, k] ** 2))
+        assert abs(rms_ratio - 1) < 0.03 and abs(sd_ratio - 1) < 0.03, (name, rms_ratio, sd_ratio)

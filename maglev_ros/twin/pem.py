@@ -67,6 +67,7 @@ __all__ = [
     "linearised_magnet_gains",
     "MagnetGains",
     "vehicle_on_modal_beam",
+    "coupled_twin_system",
 ]
 
 GRAVITY_MPS2 = 9.81
@@ -778,4 +779,151 @@ def vehicle_on_modal_beam(
         output_units=units,
         time_invariant=False,
         description=f"rigid car body + {n_mag} PD magnets on a {span_m} m simply supported beam, {nm_} modes",
+    )
+
+
+# ============================================================== adapter: the twin's coupled model
+def coupled_twin_system(
+    config: Any = None,
+    spans: Any = None,
+    *,
+    speed_mps: float = 30.0,
+    start_m: float | None = None,
+    lead_in_m: float = 20.0,
+    guideway_points_m: Sequence[float] | None = None,
+    mode_cutoff_hz: float | None = None,
+    min_modes_per_span: int | None = None,
+    n_elements_per_span: int | None = None,
+) -> LinearMovingSystem:
+    """Linearised coupled vehicle/guideway system of the twin as a ``LinearMovingSystem``.
+
+    Built from the twin's own modules: ``levitation.build_vehicle`` (data-driven vehicle M, C, K,
+    magnet input B, static equilibrium magnet forces F0, linearised magnet force
+    dF = k_g dgap + c_g dgap' - m_a a_m from ``LevitationModel.partials``) and
+    ``guideway.Guideway(...).modes(...)`` (mass-normalised span modes phi_j(x), slopes).
+    ``config``: a ``design.TwinConfig`` (None: defaults); ``spans``: SpanSpecs / metadata line
+    (None: ``design.default_line``).
+
+    DOFs [vehicle (n_v), guideway modal (n_m)]. With y_k = r_k + phi(x_k)^T q the rail under
+    magnet k and dgap_k = y_k - B_k^T z:
+      vehicle:  M_v z'' + C_v z' + K_v z = B dF
+      guideway: q'' + 2 zeta w q' + w^2 q = -Phi (F0 + dF)
+    dgap' includes the convective term v phi'(x_k)^T q. Coil dynamics (inductance > 0) add first
+    order current states that this second-order integrator does not carry: refused.
+    Outputs: car-body heave acceleration, magnet 1 acceleration and gap change, and guideway
+    vertical acceleration and displacement at ``guideway_points_m`` (default: each span's
+    midpoint).
+    """
+    from maglev_ros.twin.design import default_line, line_spans, twin_config
+    from maglev_ros.twin.guideway import Guideway
+    from maglev_ros.twin.levitation import build_vehicle
+
+    cfg = twin_config() if config is None else config
+    if cfg.levitation.coil_inductance_h > 0:
+        raise UserError("design.levitation.coil_inductance_h: the PEM adapter needs 0 (current follows the "
+                        "control law); coil current states are not second-order DOFs")
+    line = default_line(cfg) if spans is None else line_spans(spans, cfg)
+    num = cfg.numerics
+    gw = Guideway(line, num.n_elements_per_span if n_elements_per_span is None else n_elements_per_span)
+    modes = gw.modes(cutoff_hz=num.mode_cutoff_hz if mode_cutoff_hz is None else mode_cutoff_hz,
+                     min_modes_per_span=num.min_modes_per_span if min_modes_per_span is None else min_modes_per_span)
+    veh = build_vehicle(cfg)
+    vm, lev = veh.model, veh.levitation
+    p = lev.partials()
+    kg = np.asarray(p.df_dgap_n_per_m, dtype=float)
+    cg = np.asarray(p.df_dgap_rate_n_s_per_m, dtype=float)
+    ma = -np.asarray(p.df_daccel_n_s2_per_m, dtype=float)
+    f0 = np.asarray(lev.static_force_n, dtype=float)
+    Bm = np.asarray(vm.magnet_input, dtype=float)  # (n_v, n_mag)
+    offs = np.asarray(vm.magnet_x_m, dtype=float)
+    n_v, n_mag, n_m = vm.n_dof, offs.size, modes.n_modes
+    n = n_v + n_m
+    sv, sq = slice(0, n_v), slice(n_v, n)
+    w = modes.omega_rad_s
+    zeta = modes.damping_ratio
+    v = float(speed_mps)
+    if start_m is None:
+        start_m = gw.start_m - float(offs.max()) - float(lead_in_m)
+
+    M0 = np.zeros((n, n)); C0 = np.zeros((n, n)); K0 = np.zeros((n, n))
+    M0[sv, sv] = vm.mass + Bm @ (ma[:, None] * Bm.T)
+    C0[sv, sv] = vm.damping + Bm @ (cg[:, None] * Bm.T)
+    K0[sv, sv] = vm.stiffness + Bm @ (kg[:, None] * Bm.T)
+    iq = np.arange(n_v, n)
+    M0[iq, iq] = 1.0
+    C0[iq, iq] = 2.0 * zeta * w
+    K0[iq, iq] = w**2
+    Br0 = np.zeros((n, n_mag)); Brd0 = np.zeros((n, n_mag))
+    Br0[sv] = Bm * kg
+    Brd0[sv] = Bm * cg
+    BmKgT = kg[:, None] * Bm.T  # (n_mag, n_v)
+    BmCgT = cg[:, None] * Bm.T
+    BmMaT = ma[:, None] * Bm.T
+
+    cache: dict = {}
+
+    def shapes(x: float):
+        if cache.get("x") != x:
+            xk = x + offs
+            cache["x"] = x
+            cache["phi"] = modes.shapes_at(xk).T  # (n_m, n_mag)
+            cache["dphi"] = modes.slopes_at(xk).T
+        return cache["phi"], cache["dphi"]
+
+    def matrices_at(t: float, x: float) -> SystemMatrices:
+        phi, dphi = shapes(x)
+        M = M0.copy(); C = C0.copy(); K = K0.copy()
+        Br = Br0.copy(); Brd = Brd0.copy()
+        f = np.zeros(n)
+        if phi.any():
+            phi_kg, phi_cg = phi * kg, phi * cg  # (n_m, n_mag)
+            # vehicle rows: - B (Kg Phi^T + v Cg Phi'^T) q - B Cg Phi^T q'
+            K[sv, sq] -= Bm @ (kg[:, None] * phi.T + v * cg[:, None] * dphi.T)
+            C[sv, sq] -= Bm @ (cg[:, None] * phi.T)
+            # guideway rows: + Phi dF(q, z part)
+            K[sq, sq] += phi_kg @ phi.T + v * (phi_cg @ dphi.T)
+            C[sq, sq] += phi_cg @ phi.T
+            K[sq, sv] -= phi @ BmKgT
+            C[sq, sv] -= phi @ BmCgT
+            M[sq, sv] -= phi @ BmMaT
+            Br[sq] = -phi_kg
+            Brd[sq] = -phi_cg
+            f[sq] = -phi @ f0
+        return SystemMatrices(M, C, K, Br, Brd, f)
+
+    pts = ([0.5 * (s.start_m + s.end_m) for s in line] if guideway_points_m is None
+           else [float(xp) for xp in guideway_points_m])
+    phi_pts = modes.shapes_at(np.asarray(pts)).T if pts else np.zeros((n_m, 0))  # (n_m, n_pts)
+    names = ["car_body_accel", "magnet1_accel", "gap1"]
+    units = ["m/s^2", "m/s^2", "m"]
+    for i, xp in enumerate(pts):
+        names += [f"guideway_accel@{xp:g}", f"guideway_disp@{xp:g}"]
+        units += ["m/s^2", "m"]
+    n_out = len(names)
+    Ca = np.zeros((n_out, n)); Cu0 = np.zeros((n_out, n)); Cv = np.zeros((n_out, n))
+    Ca[0, vm.dof_index("car.z")] = 1.0
+    Ca[1, sv] = Bm[:, 0]
+    for i in range(len(pts)):
+        Ca[3 + 2 * i, sq] = phi_pts[:, i]
+        Cu0[4 + 2 * i, sq] = phi_pts[:, i]
+    Cu0[2, sv] = -Bm[:, 0]
+    Dr = np.zeros((n_out, n_mag)); Dr[2, 0] = 1.0
+
+    def outputs_at(t: float, x: float) -> OutputMatrices:
+        phi, _ = shapes(x)
+        Cu = Cu0.copy()
+        Cu[2, sq] = phi[:, 0]
+        return OutputMatrices(Cu, Cv, Ca, Dr, None)
+
+    return LinearMovingSystem(
+        n_dof=n,
+        input_offsets_m=offs,
+        speed_mps=v,
+        start_m=float(start_m),
+        matrices_at=matrices_at,
+        outputs_at=outputs_at,
+        output_names=tuple(names),
+        output_units=tuple(units),
+        time_invariant=False,
+        description=f"twin: {n_v}-DOF vehicle + {n_m} guideway modes over {len(line)} spans",
     )

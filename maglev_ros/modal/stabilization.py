@@ -187,8 +187,8 @@ def cluster_poles(table_order: np.ndarray, freq: np.ndarray, zeta: np.ndarray,
     d = np.abs(f[:, None] - f[None, :]) / np.maximum(f[:, None], f[None, :])
     if shapes is not None:
         d = d + crit.mac_weight * (1.0 - mac(shapes[cand].T, shapes[cand].T))
+    d = np.maximum(0.5 * (d + d.T), 0.0)
     np.fill_diagonal(d, 0.0)
-    d = 0.5 * (d + d.T)
     if cand.size == 1:
         labels = np.array([1])
     else:

@@ -147,7 +147,7 @@ def make_recording(speed_kmh: float = 30.0, seed: int = 0, speed_kind: str = "co
     """A pass over ``length_m`` of line at ``speed_kmh`` (see speed_profile for kinds).
 
     ``bias_mps2`` may be a scalar or one value per magnet. ``deflection_amp_m`` > 0 adds a
-    quasi-static girder deflection under each magnet (sagging -amp * sin^2 over 24.768 m spans)
+    quasi-static girder deflection under each magnet (sagging -amp * sin^2 over 12.384 m spans)
     to the rail position the magnet sees; ``Recording.deflection`` holds it.
     """
     rng = np.random.default_rng(seed)
@@ -180,7 +180,7 @@ def make_recording(speed_kmh: float = 30.0, seed: int = 0, speed_kind: str = "co
         xm = xref + off
         rm = np.interp(xm, xr, r)
         if deflection_amp_m > 0:
-            w = -deflection_amp_m * np.sin(np.pi * (xm % 24.768) / 24.768) ** 2
+            w = -deflection_amp_m * np.sin(np.pi * (xm % 12.384) / 12.384) ** 2
         else:
             w = np.zeros_like(xm)
         rail = rm + w

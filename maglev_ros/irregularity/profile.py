@@ -642,7 +642,7 @@ class IncrementalProfiler:
         if t0 is None or not math.isfinite(t_avail):
             return self
         start = self.t_committed if self.t_committed is not None else t0
-        if t_avail - start >= self.hop_s + 2 * self.margin_s:
+        if t_avail - start >= self.hop_s + self.margin_s:
             self._process(t_avail - self.margin_s, final=False)
         self.max_buffer_samples = max(self.max_buffer_samples, self.streams["accel"].t.size)
         return self

@@ -247,22 +247,30 @@ def _integrate(
 
 
 def _integrate_impl(system, n_steps, nm, n_cols, excitation, det_weight, sink) -> None:
+    """Newmark in acceleration (predictor-corrector) form, identical to the displacement form:
+    u* = u + dt v + (1/2 - beta) dt^2 a,  v* = v + (1 - gamma) dt a,
+    (M + gamma dt C + beta dt^2 K) a_new = F - C v* - K u*,
+    u_new = u* + beta dt^2 a_new,  v_new = v* + gamma dt a_new  (fewest array passes per step)."""
     n = system.n_dof
     x0, v = system.start_m, system.speed_mps
     mats = system.matrices_at(0.0, x0)
     outs = system.outputs_at(0.0, x0)
     _check_shapes(system, mats, outs)
+    has_det = bool(np.any(det_weight))
 
     def forcing(m: SystemMatrices, R: np.ndarray, Rd: np.ndarray) -> np.ndarray:
         F = m.input_r @ R
         F += m.input_r_rate @ Rd
-        F += np.outer(m.force_det, det_weight)
+        if has_det and m.force_det.any():
+            F += np.outer(m.force_det, det_weight)
         return F
 
     def output(o: OutputMatrices, u, vel, acc, R, Rd) -> np.ndarray:
-        Y = o.disp @ u
-        Y += o.vel @ vel
-        Y += o.acc @ acc
+        Y = o.acc @ acc
+        if o.disp.any():
+            Y += o.disp @ u
+        if o.vel.any():
+            Y += o.vel @ vel
         if o.r_gain is not None:
             Y += o.r_gain @ R
         if o.r_rate_gain is not None:
@@ -275,25 +283,29 @@ def _integrate_impl(system, n_steps, nm, n_cols, excitation, det_weight, sink) -
     acc = np.linalg.solve(mats.mass, forcing(mats, R, Rd))
     sink(0, output(outs, u, vel, acc, R, Rd))
 
-    c0, c1, c2, c3, c4, c5 = nm.c0, nm.c1, nm.c2, nm.c3, nm.c4, nm.c5
-    dt, gamma = nm.dt, nm.gamma
+    dt, beta, gamma = nm.dt, nm.beta, nm.gamma
+    bdt2, gdt = beta * dt * dt, gamma * dt
+    pu, pv = (0.5 - beta) * dt * dt, (1.0 - gamma) * dt
     solver = _StepSolver(n, n_cols)
-    solver.factor(c0 * mats.mass + c1 * mats.damping + mats.stiffness)
+    solver.factor(mats.mass + gdt * mats.damping + bdt2 * mats.stiffness)
     for i in range(1, n_steps + 1):
         t = i * dt
         x = x0 + v * t
         if not system.time_invariant:
             mats = system.matrices_at(t, x)
             outs = system.outputs_at(t, x)
-            solver.factor(c0 * mats.mass + c1 * mats.damping + mats.stiffness)
+            solver.factor(mats.mass + gdt * mats.damping + bdt2 * mats.stiffness)
         R, Rd = excitation(i, t, x)
+        # predictors (in place: u <- u*, vel <- v*)
+        u += dt * vel
+        u += pu * acc
+        vel += pv * acc
         rhs = forcing(mats, R, Rd)
-        rhs += mats.mass @ (c0 * u + c2 * vel + c3 * acc)
-        rhs += mats.damping @ (c1 * u + c4 * vel + c5 * acc)
-        u_new = solver.solve(rhs)
-        acc_new = c0 * (u_new - u) - c2 * vel - c3 * acc
-        vel += dt * ((1.0 - gamma) * acc + gamma * acc_new)
-        u, acc = u_new, acc_new
+        rhs -= mats.damping @ vel
+        rhs -= mats.stiffness @ u
+        acc = solver.solve(rhs)
+        u += bdt2 * acc
+        vel += gdt * acc
         sink(i, output(outs, u, vel, acc, R, Rd))
 
 
@@ -458,9 +470,21 @@ class PseudoExcitation:
             if with_det:
                 det_w[0] = 1.0
 
-            def excitation(i, t, x, Rc=Rc, Rdc=Rdc, Rf=Rf, Rdf=Rdf, om=om, amp=amp, iwv=iwv, first=first):
-                ph = np.exp(1j * np.outer(x + offs, om))
-                ph *= amp
+            # phases advance by exp(i Omega v dt) per step (one complex multiply instead of an exp);
+            # recomputed exactly every 256 steps so round-off cannot accumulate
+            rot = np.exp(1j * om * v * nm.dt)
+            state = {"i": -10, "ph": None}
+
+            def excitation(i, t, x, Rc=Rc, Rdc=Rdc, Rf=Rf, Rdf=Rdf, om=om, amp=amp, iwv=iwv, first=first,
+                           rot=rot, state=state):
+                if i == state["i"] + 1 and i % 256:
+                    ph = state["ph"]
+                    ph *= rot
+                else:
+                    ph = np.exp(1j * np.outer(x + offs, om))
+                    ph *= amp
+                    state["ph"] = ph
+                state["i"] = i
                 Rc[:, first:] = ph
                 np.multiply(ph, iwv, out=Rdc[:, first:])
                 return Rf, Rdf

@@ -121,7 +121,8 @@ class StabilityCriteria:
     mac_tol: float = 0.02             # 1 - MAC to the previous order's pole
     min_damping: float = 0.0          # physical poles: damping ratio range (exclusive low)
     max_damping: float = 0.15
-    min_mpc: float = 0.0              # reject poles with lower MPC (0 = keep all)
+    min_mpc: float = 0.5              # reject poles with lower MPC (0 = keep all; mixed
+    #                                   velocity/acceleration channels need 0)
     cluster_distance: float = 0.02    # cut of the average-linkage dendrogram
     mac_weight: float = 1.0           # weight of (1 - MAC) in the cluster distance
     min_cluster_fraction: float = 0.25  # a mode must be stable in this fraction of the orders

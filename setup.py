@@ -36,6 +36,7 @@ setup(
         "matplotlib>=3.8",
         "rosbags>=0.10",
         "mcap>=1.1",
+        "numba>=0.60",
     ],
     extras_require={"test": ["pytest>=8", "pytest-timeout>=2.3"]},
     zip_safe=True,

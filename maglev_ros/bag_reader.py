@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import struct
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,8 @@ SENSORBLOCK_FIELDS = ("header", "sample_rate_hz", "channels", "units", "data")
 LAG_SLACK_NS = 10_000_000_000
 #: At most this many issues of one kind per topic are listed; the rest are summarised.
 MAX_ISSUES_PER_KIND = 20
+#: Header stamp (int32 sec, uint32 nanosec) right after the 4-byte CDR encapsulation.
+_STAMP_LE = struct.Struct("<iI")
 
 
 @dataclass(frozen=True)
@@ -208,16 +211,12 @@ class BagReader:
     def _messages(self, conns, start=None, stop=None):
         """rosbags message generator with low-level failures turned into one-line errors."""
         gen = self._reader.messages(connections=conns, start=start, stop=stop)
-        while True:
-            try:
-                item = next(gen)
-            except StopIteration:
-                return
-            except ContractError:
-                raise
-            except Exception as exc:  # broken chunk / truncated storage
-                raise self._fail(f"cannot read bag (corrupt or truncated): {_one_line(exc)}") from None
-            yield item
+        try:
+            yield from gen
+        except ContractError:
+            raise
+        except Exception as exc:  # broken chunk / truncated storage
+            raise self._fail(f"cannot read bag (corrupt or truncated): {_one_line(exc)}") from None
 
     def _read_metadata(self) -> None:
         conns = self._conns.get(TOPIC_METADATA)
@@ -459,20 +458,27 @@ class BagReader:
         ws, we, log_start, log_stop = self._window(conns, start_s, duration_s)
         ts = self._reader.typestore
         has_header = {}
+        is2 = self._is2
+        unpack = _STAMP_LE.unpack_from
         for conn, log_ns, raw in self._messages(conns, start=log_start, stop=log_stop):
             mt = conn.msgtype
-            if mt not in has_header:
+            hh = has_header.get(mt)
+            if hh is None:
                 fields = ts.fielddefs.get(mt, (None, []))[1]
-                has_header[mt] = bool(fields) and fields[0][0] == "header"
+                hh = has_header[mt] = bool(fields) and fields[0][0] == "header"
             stamp = log_ns
-            if not self._is2:
+            if not is2:
                 raw, stamp = self._ros1_to_ros2_cdr(raw, mt, conn.topic, log_ns)
-            elif has_header[mt]:
-                stamp = self._header_stamp(raw, mt, conn.topic)
+            elif hh:
+                if len(raw) >= 12 and raw[1] == 1:        # little-endian CDR: the common case
+                    sec, nsec = unpack(raw, 4)
+                    stamp = sec * 1_000_000_000 + nsec
+                else:
+                    stamp = self._header_stamp(raw, mt, conn.topic)
             if ws is not None and conn.topic != TOPIC_METADATA:
                 if stamp < ws or (we is not None and stamp >= we):
                     continue
-            yield conn.topic, mt, stamp, bytes(raw)
+            yield conn.topic, mt, stamp, raw if type(raw) is bytes else bytes(raw)
 
     def _ros1_to_ros2_cdr(self, raw, msgtype: str, topic: str, log_ns: int):
         """ROS1 payload -> ROS 2 CDR (headers lose their ``seq``), and its stamp."""

@@ -195,6 +195,11 @@ def test_pem_matches_monte_carlo_on_beam_crossing(seed):
         inside3 = np.mean(np.abs(h - pem.mean[w, k]) <= 3 * pem.sd[w, k])
         inside1 = np.mean(np.abs(h - pem.mean[w, k]) <= pem.sd[w, k])
         assert inside3 > 0.99 and abs(inside1 - 0.683) < 0.03
+    # run-averaged RMS against the Monte Carlo estimate's own standard error
+    mc_rms, mc_se = mc.time_rms_and_se()
+    pem_rms = pem.time_rms()
+    for k in range(len(pem.output_names)):
+        assert abs(mc_rms[k] - pem_rms[k]) < 4 * mc_se[k] + 1e-3 * pem_rms[k], pem.output_names[k]
     # the vehicle's weight gives a real moving-load mean at midspan, zero before arrival
     k = pem.output_index("midspan_disp")
     assert pem.mean[:, k].min() < -1e-3 and pem.mean[0, k] == 0.0

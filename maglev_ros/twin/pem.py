@@ -363,6 +363,10 @@ class PemResult:
         """sqrt(mean^2 + SD^2) at each time (paper 001's RMS)."""
         return np.sqrt(self.mean**2 + np.maximum(self.variance, 0.0))
 
+    def time_rms(self) -> np.ndarray:
+        """sqrt of the run-averaged mean square per output (compare ``MonteCarloResult.time_rms_and_se``)."""
+        return np.sqrt(np.mean(self.mean**2 + np.maximum(self.variance, 0.0), axis=0))
+
     @property
     def upper_3sigma(self) -> np.ndarray:
         return self.mean + 3.0 * self.sd
@@ -520,7 +524,10 @@ class PseudoExcitation:
 # ============================================================== Monte Carlo
 @dataclass(frozen=True, eq=False)
 class MonteCarloResult:
-    """Sample statistics over profiles: mean, sd (ddof=1): (n_t, n_out); histories (n_keep, n_t, n_out)."""
+    """Sample statistics over profiles: mean, sd (ddof=1): (n_t, n_out); histories (n_keep, n_t, n_out);
+    sample_mean_square (n_samples, n_out): each sample's time average of y^2 over the whole run
+    (its mean over samples estimates the time-averaged RMS^2, its spread gives that estimate's
+    sampling error: ``time_rms_and_se``)."""
 
     time_s: np.ndarray
     output_names: tuple[str, ...]
@@ -528,7 +535,16 @@ class MonteCarloResult:
     sd: np.ndarray
     n_samples: int
     histories: np.ndarray
+    sample_mean_square: np.ndarray
     elapsed_s: float = 0.0
+
+    def time_rms_and_se(self) -> tuple[np.ndarray, np.ndarray]:
+        """(sqrt of the run-averaged mean square, its standard error) per output."""
+        q = self.sample_mean_square
+        ms = q.mean(axis=0)
+        se_ms = q.std(axis=0, ddof=1) / np.sqrt(max(q.shape[0], 1)) if q.shape[0] > 1 else np.zeros_like(ms)
+        rms = np.sqrt(ms)
+        return rms, np.where(rms > 0, se_ms / (2.0 * np.maximum(rms, 1e-300)), 0.0)
 
     @property
     def rms(self) -> np.ndarray:
@@ -594,6 +610,7 @@ class MonteCarlo:
         s2 = np.zeros((n_t, n_out))
         n_keep = min(self.keep_histories, n_s)
         hist = np.zeros((n_keep, n_t, n_out))
+        msq = np.zeros((n_s, n_out))
         batch = n_s if self.sample_batch is None else int(self.sample_batch)
         for b0 in range(0, n_s, batch):
             b1 = min(n_s, b0 + batch)
@@ -609,9 +626,11 @@ class MonteCarlo:
                 Rd = sb[k] * (1.0 - w) + sb[k + 1] * w
                 return R, Rd
 
-            def sink(i, Y, b0=b0):
+            def sink(i, Y, b0=b0, b1=b1):
+                Y2 = Y * Y
                 s1[i] += Y.sum(axis=1)
-                s2[i] += (Y * Y).sum(axis=1)
+                s2[i] += Y2.sum(axis=1)
+                msq[b0:b1] += Y2.T
                 if b0 < n_keep:
                     m = min(n_keep - b0, Y.shape[1])
                     hist[b0:b0 + m, i, :] = Y[:, :m].T
@@ -626,6 +645,7 @@ class MonteCarlo:
             sd=np.sqrt(var),
             n_samples=n_s,
             histories=hist,
+            sample_mean_square=msq / n_t,
             elapsed_s=_time.perf_counter() - t_start,
         )
 

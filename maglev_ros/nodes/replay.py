@@ -231,6 +231,10 @@ def replay(node: ReplayNode, executor) -> None:
             progress.show(node, total_s, force=True)
             if node.progress_on:
                 sys.stderr.write("\n")
+            wall = time.monotonic() - progress.t_wall0
+            node.get_logger().info(
+                f"published {node.published} messages, {total_s:.2f} s of recording in "
+                f"{wall:.2f} s wall ({total_s / max(wall, 1e-9):.1f}x real time)")
         finally:
             keys.restore()
     # Let reliable writers hand out what they hold before the node goes away.

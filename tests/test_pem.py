@@ -287,3 +287,27 @@ def test_twin_adapter_pem_matches_monte_carlo():
         rms_ratio = np.sqrt(np.mean(mc.rms[w, k] ** 2) / np.mean(pem.rms[w, k] ** 2))
         sd_ratio = np.sqrt(np.mean(mc.sd[w, k] ** 2) / np.mean(pem.sd[w, k] ** 2))
         assert abs(rms_ratio - 1) < 0.03 and abs(sd_ratio - 1) < 0.03, (name, rms_ratio, sd_ratio)
+
+
+def test_twin_adapter_structure_matches_levitation_closed_loop_and_is_reciprocal():
+    from maglev_ros.twin.levitation import build_vehicle
+
+    cfg, line, sysm = _twin_system(2, 1e-9)
+    veh = build_vehicle(cfg)
+    nv = veh.model.n_dof
+    # off the guideway: vehicle block == the levitation module's closed loop on a rigid rail
+    off = sysm.matrices_at(0.0, line[0].start_m - 100.0)
+    A = veh.state_space.A
+    np.testing.assert_allclose(-np.linalg.solve(off.mass[:nv, :nv], off.stiffness[:nv, :nv]), A[nv:2 * nv, :nv],
+                               rtol=1e-9, atol=1e-9 * np.abs(A).max())
+    np.testing.assert_allclose(-np.linalg.solve(off.mass[:nv, :nv], off.damping[:nv, :nv]),
+                               A[nv:2 * nv, nv:2 * nv], rtol=1e-9, atol=1e-9 * np.abs(A).max())
+    assert not off.stiffness[:nv, nv:].any() and not off.force_det.any()
+    # on the guideway at ~zero speed: gap stiffness and damping couple reciprocally (symmetric K, C)
+    on = sysm.matrices_at(0.0, line[0].start_m + 15.0)
+    assert np.abs(on.stiffness[:nv, nv:]).max() > 0
+    np.testing.assert_allclose(on.stiffness, on.stiffness.T, rtol=1e-9, atol=1e-9 * np.abs(on.stiffness).max())
+    np.testing.assert_allclose(on.damping, on.damping.T, rtol=1e-9, atol=1e-9 * np.abs(on.damping).max())
+    # the guideway carries the vehicle's weight: sum of magnet loads = total weight (mode-free check)
+    f0 = veh.levitation.static_force_n
+    assert f0.sum() == pytest.approx(veh.model.total_mass_kg * cfg.vehicle.gravity_mps2, rel=1e-9)

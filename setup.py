@@ -14,6 +14,7 @@ NODES = {
     "replay": "maglev_ros.nodes.replay:main",
     "echo": "maglev_ros.nodes.echo:main",
     "summary": "maglev_ros.nodes.summary:main",
+    "irregularity": "maglev_ros.nodes.irregularity:main",
 }
 
 setup(

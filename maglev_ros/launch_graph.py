@@ -18,6 +18,7 @@ class NodeSpec:
 GRAPHS: dict[str, list[NodeSpec]] = {
     "monitor": [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
+        NodeSpec("irregularity", "maglev_ros.nodes.irregularity"),
     ],
 }
 

@@ -40,22 +40,6 @@ def add_arguments(p) -> None:
     p.add_argument("--confidence", type=float, default=0.90, help="PSD confidence level")
 
 
-def _channel_pairs(md, accel, gap, topic_a, topic_g):
-    """magnet -> (accel channel, gap channel) from the metadata sensors; None: pair by order."""
-    pairs_a, pairs_g = {}, {}
-    for sid, s in md.sensors.items():
-        if s.magnet is None:
-            continue
-        if s.topic == topic_a and sid in accel.channels and (s.direction in (None, "vertical")):
-            pairs_a.setdefault(s.magnet, sid)
-        if s.topic == topic_g and sid in gap.channels:
-            pairs_g.setdefault(s.magnet, sid)
-    both = sorted(set(pairs_a) & set(pairs_g))
-    if not both:
-        return None
-    return {m: (pairs_a[m], pairs_g[m]) for m in both}
-
-
 def _check_units(cd, topic, want, channels):
     for ch in channels:
         u = cd.units[cd.channels.index(ch)] if getattr(cd, "units", None) else want
@@ -68,6 +52,7 @@ def read_inputs(path: str):
     from maglev_ros.bag_reader import BagReader
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
+    from maglev_ros.irregularity.profile import magnet_channel_pairs
     if not Path(path).exists():
         raise UserError(f"{path}: no such bag")
     with BagReader(path) as r:
@@ -83,7 +68,7 @@ def read_inputs(path: str):
     if not offsets:
         raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")
     g0 = md.nominal_gap_m if md.nominal_gap_m is not None else 0.010
-    pairs = _channel_pairs(md, accel, gap, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP)
+    pairs = magnet_channel_pairs(md, accel.channels, gap.channels)
     used_a = [a for a, _ in pairs.values()] if pairs else list(accel.channels[:len(offsets)])
     used_g = [g for _, g in pairs.values()] if pairs else list(gap.channels[:len(offsets)])
     _check_units(accel, TOPIC_VEHICLE_ACCEL, "m/s^2", used_a)

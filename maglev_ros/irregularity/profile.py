@@ -718,3 +718,26 @@ class IncrementalProfiler:
                 value=self.slow_m))
         biases = [float(np.mean(self.biases.get(k, [0.0]))) for k in range(len(self.specs))]
         return _finish(acc, self.specs, warns, biases, c, v_band, lam_min, lam_max, "loaded")
+
+
+def magnet_channel_pairs(metadata, accel_channels=None, gap_channels=None) -> dict | None:
+    """magnet number -> (accel channel, gap channel) from the recording metadata's sensors.
+
+    A sensor pairs when it names a ``magnet`` and sits on /testline/vehicle/accel (vertical) or
+    /testline/vehicle/gap; when channel lists are given, only channels present there count.
+    None when no magnet has both (the profiler then pairs channels by order).
+    """
+    from maglev_ros.contract import TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP
+    pairs_a, pairs_g = {}, {}
+    for sid, s in metadata.sensors.items():
+        if s.magnet is None:
+            continue
+        if (s.topic == TOPIC_VEHICLE_ACCEL and (accel_channels is None or sid in accel_channels)
+                and s.direction in (None, "vertical")):
+            pairs_a.setdefault(s.magnet, sid)
+        if s.topic == TOPIC_VEHICLE_GAP and (gap_channels is None or sid in gap_channels):
+            pairs_g.setdefault(s.magnet, sid)
+    both = sorted(set(pairs_a) & set(pairs_g))
+    if not both:
+        return None
+    return {m: (pairs_a[m], pairs_g[m]) for m in both}

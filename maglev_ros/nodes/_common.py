@@ -70,3 +70,34 @@ def run_node(node_factory, args=None) -> int:
         if rclpy.ok():
             rclpy.try_shutdown()
     return code
+
+
+def block_from_msg(msg):
+    """rclpy SensorBlock -> core :class:`maglev_ros.sensor_block.Block` (no copy of the samples)."""
+    import numpy as np
+
+    from maglev_ros.sensor_block import Block
+    nch = len(msg.channels)
+    data = np.frombuffer(msg.data, dtype=np.float32) if len(msg.data) else np.zeros(0, np.float32)
+    return Block(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
+                 msg.header.frame_id, float(msg.sample_rate_hz), tuple(msg.channels),
+                 tuple(msg.units), data.reshape(-1, max(nch, 1)))
+
+
+def msg_from_block(block):
+    """Core Block -> rclpy SensorBlock."""
+    import numpy as np
+
+    from maglev_msgs.msg import SensorBlock
+    msg = SensorBlock()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(block.stamp_ns), 1_000_000_000)
+    msg.header.frame_id = block.frame_id
+    msg.sample_rate_hz = float(block.sample_rate_hz)
+    msg.channels = list(block.channels)
+    msg.units = list(block.units)
+    msg.data = np.ascontiguousarray(block.data, dtype=np.float32).ravel()
+    return msg
+
+
+def stamp_to_msg(stamp_ns: int, header) -> None:
+    header.stamp.sec, header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)

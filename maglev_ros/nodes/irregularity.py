@@ -1,0 +1,121 @@
+"""Node ``irregularity``: guideway irregularity by the inertial reference method, as it grows.
+
+Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position}; feeds
+:class:`maglev_ros.irregularity.profile.IncrementalProfiler`; publishes the profile on
+/maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
+profile whenever it joins) every ``publish_period_s`` when it has grown.
+
+Parameters: highpass_hz (0.2), spacing_m (0.25), band_speed_mps (0: 80% of the metadata's
+nominal speed, else 15 km/h), max_profile_m (0: unbounded), publish_period_s (1.0).
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from maglev_msgs.msg import IrregularityProfile, SensorBlock
+from maglev_ros.contract import (TOPIC_METADATA, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                 TOPIC_VEHICLE_POSITION, parse_metadata)
+from maglev_ros.errors import UserError
+from maglev_ros.nodes._common import QOS_LATCHED, block_from_msg, qos_for, run_node, stamp_to_msg
+
+TOPIC_IRREGULARITY = "/maglev/irregularity"
+
+
+class IrregularityNode(Node):
+    def __init__(self) -> None:
+        super().__init__("irregularity")
+        p = self.declare_parameter
+        self.highpass_hz = p("highpass_hz", 0.2).value
+        self.spacing_m = p("spacing_m", 0.25).value
+        self.band_speed_mps = p("band_speed_mps", 0.0).value
+        self.max_profile_m = p("max_profile_m", 0.0).value
+        period = p("publish_period_s", 1.0).value
+        self.profiler = None
+        self.pending: list[tuple[str, object]] = []
+        self.last_stamp_ns = 0
+        self.n_published_points = -1
+        self.warned: set = set()
+        self.pub = self.create_publisher(IrregularityProfile, TOPIC_IRREGULARITY, QOS_LATCHED)
+        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
+        for topic, key in ((TOPIC_VEHICLE_ACCEL, "accel"), (TOPIC_VEHICLE_GAP, "gap"),
+                           (TOPIC_VEHICLE_POSITION, "position")):
+            self.create_subscription(SensorBlock, topic, self._on_block(key), qos_for(topic))
+        self.create_timer(period, self._publish)
+
+    def _on_metadata(self, msg) -> None:
+        from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
+        try:
+            md = parse_metadata(msg.data, TOPIC_METADATA)
+            offsets = md.magnet_offsets_m
+        except Exception as exc:  # noqa: BLE001  (a bad recording must not kill the node)
+            self.get_logger().error(f"metadata unusable for the irregularity: {exc}")
+            return
+        if not offsets:
+            self.get_logger().warning("metadata has no vehicle.magnet_offsets_m (ambient run?)")
+            return
+        band = self.band_speed_mps or (0.8 * md.nominal_speed_mps if md.nominal_speed_mps
+                                       else 15.0 / 3.6)
+        self.profiler = IncrementalProfiler(
+            offsets, md.nominal_gap_m or 0.010, channel_pairs=magnet_channel_pairs(md),
+            band_speed_mps=band, max_profile_m=self.max_profile_m or None,
+            highpass_hz=self.highpass_hz, spacing_m=self.spacing_m)
+        for key, block in self.pending:
+            self._feed(key, block)
+        self.pending.clear()
+
+    def _on_block(self, key: str):
+        def cb(msg) -> None:
+            block = block_from_msg(msg)
+            self.last_stamp_ns = max(self.last_stamp_ns, block.end_ns)
+            if self.profiler is None:
+                self.pending.append((key, block))
+            else:
+                self._feed(key, block)
+        return cb
+
+    def _feed(self, key: str, block) -> None:
+        try:
+            self.profiler.partial_fit(**{key: block})
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"irregularity: {key} block at {block.stamp_s:.3f} s: {exc}")
+
+    def _publish(self) -> None:
+        if self.profiler is None:
+            return
+        try:
+            res = self.profiler.result()
+        except UserError:       # not enough of all three topics yet
+            return
+        if res.position_m.size == 0 or res.position_m.size == self.n_published_points:
+            return
+        self.n_published_points = res.position_m.size
+        msg = IrregularityProfile()
+        stamp_to_msg(self.last_stamp_ns, msg.header)
+        msg.header.frame_id = "guideway"
+        msg.start_position_m = float(res.position_m[0])
+        msg.spacing_m = float(res.spacing_m)
+        msg.irregularity_m = np.asarray(res.irregularity_m, dtype=np.float64)
+        msg.std_m = np.asarray(res.std_m, dtype=np.float64)
+        msg.min_wavelength_m = float(res.min_wavelength_m)
+        msg.max_wavelength_m = float(res.max_wavelength_m)
+        msg.kind = res.kind
+        msg.sources = list(res.magnet_names)
+        self.pub.publish(msg)
+        for w in res.warnings:
+            key = (w.kind, w.channel, w.start_s)
+            if key not in self.warned:
+                self.warned.add(key)
+                self.get_logger().warning(json.dumps(w.to_dict()))
+
+
+def main(args=None) -> int:
+    return run_node(IrregularityNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

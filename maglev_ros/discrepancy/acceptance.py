@@ -1,0 +1,74 @@
+"""Acceptance gates for a fitted extension (all must pass; the reasons of a failure are kept).
+
+1. Held-out fit: NRMSE on held-out passes (not used for fitting) drops by at least
+   ``min_rel_gain`` relatively AND ``min_abs_gain`` absolutely.
+2. Penalised fit: BIC of the extended model beats the calibrated twin by ``max_delta_bic`` (< 0)
+   on the training passes (effective sample size = residual count / 2 for the 50 % frame overlap).
+3. Physically plausible parameters (each catalogue entry's own bounds).
+4. Not a calibrated parameter in disguise: the calibrated parameters are re-fitted jointly with the
+   extension (see :mod:`.fitting`), so a gain that a change of E, kb, kp or kv gives as well never
+   survives gates 1-2; in addition an extension whose band-amplitude signature is > ``max_collinear``
+   collinear with one calibrated parameter's signature is rejected.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AcceptanceConfig:
+    min_rel_gain: float = 0.15
+    min_abs_gain: float = 0.01
+    max_delta_bic: float = -10.0
+    max_collinear: float = 0.97
+
+
+@dataclass(frozen=True)
+class Verdict:
+    accepted: bool
+    reasons: tuple[str, ...]
+    heldout_before: float
+    heldout_after: float
+    delta_bic: float
+
+    @property
+    def heldout_gain(self) -> float:
+        return (self.heldout_before - self.heldout_after) / self.heldout_before if self.heldout_before > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        return {"accepted": self.accepted, "reasons": list(self.reasons),
+                "heldout_nrmse_before": self.heldout_before, "heldout_nrmse_after": self.heldout_after,
+                "delta_bic": self.delta_bic}
+
+
+def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausible: tuple[bool, str],
+          collinearity: float, cfg: AcceptanceConfig = AcceptanceConfig()) -> Verdict:
+    why = []
+    gain = heldout_before - heldout_after
+    if not (gain >= cfg.min_rel_gain * heldout_before and gain >= cfg.min_abs_gain):
+        why.append(f"held-out NRMSE {heldout_before:.3f} -> {heldout_after:.3f} is not a clear improvement "
+                   f"(needs >= {cfg.min_rel_gain * 100:.0f} % and >= {cfg.min_abs_gain})")
+    if not delta_bic <= cfg.max_delta_bic:
+        why.append(f"delta BIC {delta_bic:+.1f} does not beat the calibrated twin (needs <= {cfg.max_delta_bic:g})")
+    if not plausible[0]:
+        why.append(plausible[1])
+    if collinearity > cfg.max_collinear:
+        why.append(f"its signature is {collinearity:.2f} collinear with a calibrated parameter (a change of "
+                   f"E, kb, kp or kv explains the same)")
+    return Verdict(not why, tuple(why), float(heldout_before), float(heldout_after), float(delta_bic))
+
+
+def collinearity(jcol: np.ndarray, jac_cal: np.ndarray) -> float:
+    """Largest |cosine| between an extension's residual change and a calibrated parameter's column."""
+    n = np.linalg.norm(jcol)
+    if n == 0:
+        return 0.0
+    best = 0.0
+    for j in range(jac_cal.shape[1]):
+        c = jac_cal[:, j]
+        cn = np.linalg.norm(c)
+        if cn > 0:
+            best = max(best, abs(float(jcol @ c)) / (n * cn))
+    return best

@@ -1,0 +1,225 @@
+"""Catalogue of physics extensions: each a parameterised addition to the twin with its signature.
+
+Every entry builds ``Hypothesis`` objects (one per candidate location): the parameter with its
+bounds and trial value, how it changes a :class:`~.model.ModelSpec`, whether it is physically
+plausible, and how to say it to a rail engineer.
+
+| effect | category | parameter | signature |
+|---|---|---|---|
+| bearing_stiffness | boundary_condition | log10 kb factor of one span end | that span's mode lower, larger response near that end, mostly when the vehicle is there |
+| control_delay | control | lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line |
+| magnet_nonlinearity | magnetic_force | current limit [A] | clipped current / extra gap excursions where demand is high |
+| ambient_excitation | excitation | log10 modal force PSD | guideway vibration at its modes before entry and after exit (no vehicle) |
+| girder_stiffness_loss | guideway_structure | relative EI loss of one span | that span deflects more, its modes drop |
+| carbody_flexibility | vehicle_structure | car-body bending frequency [Hz] | vehicle accel band near the bending frequency |
+| sensor_error | instrumentation | scale, offset, drift of one channel (or a dropout) | one channel only, others agree with the twin |
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .model import ModelSpec
+
+CATEGORIES = ("boundary_condition", "control", "magnetic_force", "excitation", "guideway_structure",
+              "vehicle_structure", "suspension", "instrumentation", "other")
+EFFECTS = {"bearing_stiffness": "boundary_condition", "control_delay": "control",
+           "magnet_nonlinearity": "magnetic_force", "ambient_excitation": "excitation",
+           "girder_stiffness_loss": "guideway_structure", "carbody_flexibility": "vehicle_structure",
+           "sensor_error": "instrumentation"}
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    effect: str
+    label: str                                   # effect + location, unique
+    param_names: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    trial: tuple[float, ...]
+    apply: Callable[[ModelSpec, np.ndarray], ModelSpec]
+    needs_sim: bool = True
+    location: dict = field(default_factory=dict)  # position_m [x0,x1] | None, span, channels
+    plausible: Callable[[np.ndarray], tuple[bool, str]] = lambda p: (True, "")
+    describe: Callable[[np.ndarray, ModelSpec], tuple[str, dict]] = lambda p, s: ("", {})
+    band_hz: tuple[float, float] | None = None
+
+    @property
+    def category(self) -> str:
+        return EFFECTS.get(self.effect, "other")
+
+
+def _span_factor(spec: ModelSpec, i: int, v: float) -> tuple:
+    f = list(spec.span_e_factor) or [1.0] * len(spec.spans)
+    f[i] = v
+    return tuple(f)
+
+
+def _bearing(spec: ModelSpec, i: int, end: int, v: float) -> tuple:
+    b = [list(x) for x in (spec.bearing_factor or tuple((1.0, 1.0) for _ in spec.spans))]
+    b[i][end] = v
+    return tuple(tuple(x) for x in b)
+
+
+def girder_hypotheses(spec: ModelSpec, f1_hz: np.ndarray) -> list[Hypothesis]:
+    out = []
+    for i, s in enumerate(spec.spans):
+        def apply(sp, p, i=i):
+            return sp.with_(span_e_factor=_span_factor(sp, i, 1.0 - float(p[0])))
+
+        def plaus(p):
+            if p[0] < 0.05:
+                return False, f"fitted stiffness change {-p[0] * 100:+.0f} % is not a loss of at least 5 %"
+            if p[0] > 0.8:
+                return False, f"fitted loss {p[0] * 100:.0f} % is beyond a girder still in service"
+            return True, ""
+
+        def desc(p, sp, i=i, s=s):
+            f_new = f1_hz[i] * math.sqrt(max(1 - p[0], 1e-6))
+            return (f"Girder span {s.span_id} ({s.start_m:.1f}-{s.end_m:.1f} m) is about {p[0] * 100:.0f} % "
+                    f"less stiff in bending than the calibrated line (e.g. cracking or prestress loss): it "
+                    f"deflects more under the vehicle and its first bending mode drops from about "
+                    f"{f1_hz[i]:.1f} Hz to {f_new:.1f} Hz.",
+                    {"span": s.span_id, "stiffness_loss": float(p[0]),
+                     "first_mode_hz": float(f_new)})
+        out.append(Hypothesis("girder_stiffness_loss", f"girder_stiffness_loss@{s.span_id}", ("stiffness_loss",),
+                              (-0.3,), (0.85,), (0.3,), apply,
+                              location={"position_m": [s.start_m, s.end_m], "span": s.span_id},
+                              plausible=plaus, describe=desc,
+                              band_hz=(0.5 * f1_hz[i], 1.05 * f1_hz[i])))
+    return out
+
+
+def bearing_hypotheses(spec: ModelSpec) -> list[Hypothesis]:
+    out = []
+    for i, s in enumerate(spec.spans):
+        kb = s.props.bearing_stiffness_n_per_m * spec.cal_factor("kb")
+        for end in (0, 1):
+            x = s.start_m if end == 0 else s.end_m
+
+            def apply(sp, p, i=i, end=end):
+                return sp.with_(bearing_factor=_bearing(sp, i, end, 10.0 ** float(p[0])))
+
+            def plaus(p):
+                f = 10.0 ** p[0]
+                if f > 0.6:
+                    return False, f"fitted bearing stiffness factor {f:.2f} is not a clear degradation (< 0.6)"
+                if f < 2e-3:
+                    return False, f"fitted bearing stiffness factor {f:.1e} means no support at all"
+                return True, ""
+
+            def desc(p, sp, s=s, end=end, kb=kb, x=x):
+                f = 10.0 ** p[0]
+                side = "start" if end == 0 else "end"
+                return (f"The bearing at the {side} of span {s.span_id} (x = {x:.1f} m) is about {1 / f:.0f} times "
+                        f"softer than the calibrated bearings ({kb * f:.2e} N/m instead of {kb:.2e} N/m): a "
+                        f"degraded or loose bearing lets that girder end move and lowers the span's modes.",
+                        {"span": s.span_id, "end": side, "position_m": x, "stiffness_factor": float(f),
+                         "bearing_stiffness_n_per_m": float(kb * f)})
+            out.append(Hypothesis("bearing_stiffness", f"bearing_stiffness@{s.span_id}.{'start' if end == 0 else 'end'}",
+                                  ("log10_stiffness_factor",), (-3.0,), (0.5,), (-1.0,), apply,
+                                  location={"position_m": [x - 0.25 * s.length_m, x + 0.25 * s.length_m],
+                                            "span": s.span_id},
+                                  plausible=plaus, describe=desc))
+    return out
+
+
+def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
+    def apply(sp, p):
+        return sp.with_(control_lag_s=max(float(p[0]), 0.0))
+
+    def plaus(p):
+        if p[0] < 5e-4:
+            return False, f"fitted delay {p[0] * 1e3:.2f} ms is below 0.5 ms (no measurable delay)"
+        if p[0] > 0.025:
+            return False, f"fitted delay {p[0] * 1e3:.0f} ms is longer than any levitation controller allows"
+        return True, ""
+
+    def desc(p, sp):
+        return (f"The levitation control acts on measurements about {p[0] * 1e3:.1f} ms old (sensor filtering, "
+                f"bus and chopper latency): the magnets follow the rail less tightly, so gap and magnet "
+                f"acceleration differ from the twin all along the line.", {"delay_s": float(p[0])})
+    return Hypothesis("control_delay", "control_delay", ("delay_s",), (0.0,), (0.03,), (0.006,), apply,
+                      location={"position_m": None, "span": None, "channels": vehicle_channels},
+                      plausible=plaus, describe=desc)
+
+
+def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
+    def apply(sp, p):
+        return sp.with_(carbody_bend_hz=float(p[0]))
+
+    def plaus(p):
+        if not 4.0 <= p[0] <= 20.0:
+            return False, f"fitted car-body bending frequency {p[0]:.1f} Hz is outside 4-20 Hz"
+        return True, ""
+
+    def desc(p, sp):
+        return (f"The car body is not rigid: its first vertical bending mode near {p[0]:.1f} Hz shows in the "
+                f"magnet accelerations (the twin models the body as rigid).", {"bending_frequency_hz": float(p[0])})
+    return Hypothesis("carbody_flexibility", "carbody_flexibility", ("bending_frequency_hz",), (3.0,), (25.0,),
+                      (8.0,), apply, location={"position_m": None, "span": None, "channels": vehicle_channels},
+                      plausible=plaus, describe=desc)
+
+
+def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float], dict]) -> Hypothesis:
+    def apply(sp, p):
+        return sp.with_(ambient_log10_psd=float(p[0]))
+
+    def plaus(p):
+        r = rms_of(float(p[0]))
+        mx = max(r.values()) if r else 0.0
+        if mx > 2.0:
+            return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
+        return True, ""
+
+    def desc(p, sp):
+        r = rms_of(float(p[0]))
+        mx = max(r.values()) if r else 0.0
+        return (f"The guideway vibrates at its own modes even without our vehicle (about {mx * 1e3:.0f} mm/s^2 "
+                f"RMS), before the vehicle enters and after it leaves: vibration from adjacent lines or the "
+                f"ground, which the twin does not include.",
+                {"log10_modal_force_psd": float(p[0]), "ambient_rms_mps2": {k: float(v) for k, v in r.items()}})
+    return Hypothesis("ambient_excitation", "ambient_excitation", ("log10_modal_force_psd",), (-9.0,), (4.0,),
+                      (-2.0,), apply, needs_sim=False,
+                      location={"position_m": None, "span": None, "channels": guideway_channels},
+                      plausible=plaus, describe=desc)
+
+
+def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float) -> Hypothesis:
+    """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second)."""
+    def apply(sp, p):
+        return sp.with_(sensor_error=((channel, math.exp(float(p[0])), float(p[1]), float(p[2])),))
+
+    def plaus(p):
+        s, o, d = math.exp(p[0]), p[1], p[2]
+        if abs(p[0]) < 0.05 and abs(o) < 3 * noise_std and abs(d) * t_span_s < 3 * noise_std:
+            return False, "fitted scale/offset/drift are within 5 % / the noise"
+        if not 0.2 < s < 5.0:
+            return False, f"fitted scale {s:.2f} is not a plausible calibration error"
+        return True, ""
+
+    def desc(p, sp):
+        s, o, d = math.exp(p[0]), p[1], p[2]
+        parts = []
+        if abs(p[0]) >= 0.05:
+            parts.append(f"reads {s:.2f} times the true value")
+        if abs(o) >= 3 * noise_std:
+            parts.append(f"has an offset of {o:.3g} {unit}")
+        if abs(d) * t_span_s >= 3 * noise_std:
+            parts.append(f"drifts by {d:.3g} {unit}/s")
+        what = ", ".join(parts) or "is slightly off"
+        return (f"Sensor {channel} {what}; the other sensors agree with the twin, so this is the instrument, "
+                f"not the structure (recalibrate or replace it).",
+                {"channel": channel, "scale": s, "offset": o, "drift_per_s": d})
+    return Hypothesis("sensor_error", f"sensor_error@{channel}", ("ln_scale", "offset", "drift_per_s"),
+                      (-2.0, -np.inf, -np.inf), (2.0, np.inf, np.inf), (0.0, 0.0, 0.0), apply, needs_sim=False,
+                      location={"position_m": None, "span": None, "channels": [channel]},
+                      plausible=plaus, describe=desc)
+
+
+MAGNET_NONLINEARITY_WHY = ("magnet_nonlinearity (current saturation) needs a hook in the twin's force kernel "
+                           "that is not available yet; a stronger gap exponent is, to first order, a change of "
+                           "the calibrated gain kp")

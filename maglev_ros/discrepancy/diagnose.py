@@ -1,0 +1,259 @@
+"""Orchestration: recordings -> calibrated twin -> located mismatches -> tested physics -> report.
+
+``Diagnoser(config).fit(passes, ambient=None) -> Diagnosis``; ``Diagnosis.to_dict()`` is the public
+``maglev-diagnosis/1`` JSON. The first pass is the training pass (calibration and fitting), every
+other pass is held out (acceptance); with a single pass the held-out set is that same pass and
+the report says so in ``rejected``/explanations (weaker evidence).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from maglev_ros.errors import UserError
+
+from . import catalogue as cat
+from .acceptance import AcceptanceConfig, Verdict, collinearity, judge
+from .discovery import discover
+from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
+from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
+from .localize import Mismatch, mismatches, residual_map
+from .model import CAL_NAMES, CAL_PARAMS, ModelSpec, base_spec, guideway_modal, predict
+from .recording import Recording, require_pass
+
+SCHEMA = "maglev-diagnosis/1"
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    n_top: int = 3                    # physics hypotheses fully fitted after screening
+    n_elements: int | None = None     # FE mesh of the diagnosing twin (None: design defaults)
+    acceptance: AcceptanceConfig = AcceptanceConfig()
+    base_max_nfev: int = 6
+    dropout_min_s: float = 0.1
+
+
+@dataclass(frozen=True, eq=False)
+class Diagnosis:
+    report: dict
+    extras: dict = field(default_factory=dict, repr=False)   # arrays for plots (not JSON)
+
+    def to_dict(self) -> dict:
+        return self.report
+
+
+def detect_dropouts(rec: Recording, min_s: float) -> list[tuple[str, float, float, float]]:
+    """Stretches where a channel repeats exactly the same value (a live sensor never does)."""
+    out = []
+    for n, ch in rec.channels.items():
+        d = np.diff(ch.values) == 0
+        if not d.any():
+            continue
+        x = np.concatenate([[0], d.astype(np.int8), [0]])
+        starts = np.flatnonzero(np.diff(x) == 1)
+        ends = np.flatnonzero(np.diff(x) == -1)
+        for a, b in zip(starts, ends):
+            if (b - a) / ch.sample_rate_hz >= min_s:
+                out.append((n, float(ch.time_s[a]), float(ch.time_s[b]), float(ch.values[a])))
+    return out
+
+
+class Diagnoser:
+    def __init__(self, config: DiagnoseConfig = DiagnoseConfig()):
+        self.config = config
+
+    # ------------------------------------------------------------------------------------
+    def fit(self, passes: Sequence[Recording], ambient: Recording | None = None) -> Diagnosis:
+        if not passes:
+            raise UserError("--pass: at least one pass recording is needed")
+        for p in passes:
+            require_pass(p)
+        cfg = self.config
+        base0 = base_spec(passes[0].metadata, cfg.n_elements)
+        train_recs, test_recs = [passes[0]], list(passes[1:]) or [passes[0]]
+        same_heldout = len(passes) == 1
+        rd_train = [prepare(r, base0) for r in train_recs]
+        rd_test = rd_train if same_heldout else [prepare(r, base0) for r in test_recs]
+        rd_all = rd_train + ([] if same_heldout else rd_test)
+        rd_amb = prepare(ambient, base0) if ambient is not None else None
+        # dropouts are a data fact: detected, then modelled on every recording
+        drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, cfg.dropout_min_s)]
+        base = fit_base(base0, rd_train, cfg.base_max_nfev)
+        nr_before, pc_before = fit_report(base.spec, rd_all)
+        # ---- localize
+        maps = [residual_map(rd, model_powers(base.spec, rd)) for rd in rd_all]
+        found: list[Mismatch] = []
+        for m in maps:
+            found.extend(mismatches(m))
+        if rd_amb is not None:
+            found.extend(mismatches(residual_map(rd_amb, model_powers(base.spec, rd_amb)), max_regions=4))
+        found.sort(key=lambda m: -m.severity * (m.time_s[1] - m.time_s[0]))
+        # ---- hypotheses
+        hyps = self._hypotheses(base, rd_train)
+        tried = []
+        physics = [h for h in hyps if h.needs_sim]
+        cheap = [h for h in hyps if not h.needs_sim]
+        screened = []
+        for h in physics:
+            try:
+                screened.append((screen(base, h, rd_train), h))
+            except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
+                tried.append({"effect": h.effect, "label": h.label, "why": f"twin failed at trial value ({exc})"})
+        screened.sort(key=lambda t: t[0])
+        cands = [h for _, h in screened[:cfg.n_top]] + cheap
+        fits: list[tuple[HypFit, Verdict, float]] = []
+        n_eff = max(10, base.r0.size // 2)
+        rss0 = float(base.r0 @ base.r0)
+        bic0 = bic(rss0, n_eff, 0)
+        held_before, _ = fit_report(base.spec, rd_test)
+        for h in cands:
+            try:
+                hf = fit_hypothesis(base, h, rd_train)
+            except Exception as exc:
+                tried.append({"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"})
+                continue
+            dbic = bic(hf.rss, n_eff, hf.k) - bic0
+            if dbic > 0 and h.effect == "sensor_error":
+                # clearly nothing: skip the held-out simulation
+                fits.append((hf, judge(held_before, held_before, dbic, h.plausible(hf.params), 0.0,
+                                       cfg.acceptance), dbic))
+                continue
+            held_after, _ = fit_report(hf.spec, rd_test)
+            col = 0.0
+            if h.needs_sim:
+                jcol = residual_vector(h.apply(base.spec, np.array(h.trial)), rd_train) - base.r0
+                col = collinearity(jcol, base.jac)
+            v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance)
+            fits.append((hf, v, dbic))
+        for (n, t0, t1, val) in drops:
+            fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
+        accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
+        accepted.sort(key=lambda t: t[1].heldout_after)
+        chosen = []
+        final_spec = base.spec
+        if accepted:
+            best = accepted[0]
+            chosen.append(best)
+            final_spec = best[0].spec
+            # a second, different effect on top (e.g. a faulty sensor plus a structural change)
+            for hf, v, d in accepted[1:]:
+                if hf.hyp.effect != best[0].hyp.effect and len(chosen) < 2:
+                    combo = _combine(final_spec, hf)
+                    nr_c, _ = fit_report(combo, rd_test)
+                    now, _ = fit_report(final_spec, rd_test)
+                    if nr_c < now * (1 - cfg.acceptance.min_rel_gain) and now - nr_c >= cfg.acceptance.min_abs_gain:
+                        chosen.append((hf, v, d))
+                        final_spec = combo
+        if drops and not any(hf.hyp.label.startswith("sensor_error@") and "dropout" in hf.hyp.label for hf, _, _ in chosen):
+            pass
+        rejected = []
+        for hf, v, d in fits:
+            if any(hf is c[0] for c in chosen):
+                continue
+            why = "; ".join(v.reasons) if not v.accepted else (
+                f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
+                f"less than {chosen[0][0].hyp.label} for the same residual")
+            rejected.append({"effect": hf.hyp.effect, "why": f"{hf.hyp.label}: {why}"})
+        for _, h in screened[cfg.n_top:]:
+            rejected.append({"effect": h.effect, "why": f"{h.label}: at its trial value it explains less of the "
+                                                      f"residual than the hypotheses fitted in full (screening)"})
+        for t in tried:
+            rejected.append({"effect": t["effect"], "why": f"{t['label']}: {t['why']}"})
+        rejected.append({"effect": "magnet_nonlinearity", "why": cat.MAGNET_NONLINEARITY_WHY})
+        if same_heldout:
+            rejected.append({"effect": "(all)", "why": "only one pass given: the held-out check used the "
+                                                      "training pass itself (weaker evidence)"})
+        # ---- discovery when mismatches remain unexplained
+        disc = []
+        maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_all]
+        if not chosen:
+            disc = discover(maps_after, guideway_modal(final_spec), base_spec_spans(final_spec))
+        nr_after, pc_after = fit_report(final_spec, rd_all)
+        missing = [self._entry(hf, v, d, final_spec) for hf, v, d in chosen]
+        report = {
+            "schema": SCHEMA,
+            "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
+            "fit_after": {"nrmse": nr_after, "per_channel": pc_after},
+            "mismatches": [m.to_dict() for m in found],
+            "missing_physics": missing,
+            "rejected": rejected,
+            "updated_parameters": final_spec.calibrated_values(),
+        }
+        if disc:
+            report["discovery"] = [d for d in disc]
+        extras = {"rd_all": rd_all, "maps_before": maps, "maps_after": maps_after, "base_spec": base.spec,
+                  "final_spec": final_spec, "fits": fits, "rd_ambient": rd_amb, "discovery": disc,
+                  "heldout_is_training": same_heldout}
+        return Diagnosis(report, extras)
+
+    # ------------------------------------------------------------------------------------
+    def _hypotheses(self, base: BaseFit, rds: list[RecData]) -> list[cat.Hypothesis]:
+        spec = base.spec
+        rec = rds[0].rec
+        modal = guideway_modal(spec)
+        f1 = np.array([modal.freq_hz[modal.span_index == i].min() for i in range(len(spec.spans))])
+        veh = rec.names("vehicle_accel") + rec.names("gap")
+        gw = rec.names("guideway_accel") + rec.names("guideway_disp")
+        hyps = cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
+        if veh:
+            hyps += [cat.control_delay_hypothesis(veh), cat.carbody_hypothesis(veh)]
+        if gw:
+            rd = rds[0]
+            shape = ambient_shape(spec, rd)
+
+            def rms_of(lg, shape=shape):
+                return {n: float(math.sqrt((10 ** lg) * s.sum())) for n, s in shape.items()
+                        if rd.rec.channels[n].group == "guideway_accel"}
+            hyps.append(cat.ambient_hypothesis(gw, rms_of))
+        from .model import GROUP_UNIT_OF
+        for n, ch in rec.channels.items():
+            noise = float(np.sqrt(np.sum(rds[0].noise[n][rds[0].masks[n]])))
+            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT_OF[ch.group], noise, rec.t1_s - rec.t0_s))
+        return hyps
+
+    def _dropout_fit(self, base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff):
+        spec = base.spec.with_(dropouts=tuple(drops))
+        r = residual_vector(spec, rd_train)
+        rss = float(r @ r)
+        held_after, _ = fit_report(spec, rd_test)
+        dbic = bic(rss, n_eff, 1) - bic0
+
+        def desc(p, sp, n=n, t0=t0, t1=t1):
+            return (f"Sensor {n} stops reporting between {t0:.2f} s and {t1:.2f} s (the value stays frozen): "
+                    f"a dropout of the instrument or its data link, not a change of the structure.",
+                    {"channel": n, "kind": "dropout", "t0_s": t0, "t1_s": t1})
+        h = cat.Hypothesis("sensor_error", f"sensor_error@{n}.dropout", ("duration_s",), (0.0,), (np.inf,),
+                           (t1 - t0,), lambda sp, p: spec, needs_sim=False,
+                           location={"position_m": None, "span": None, "channels": [n]}, describe=desc)
+        v = judge(held_before, min(held_after, held_before), dbic, (True, ""), 0.0,
+                  AcceptanceConfig(min_rel_gain=0.0, min_abs_gain=0.0, max_delta_bic=-10.0))
+        return HypFit(h, np.array([t1 - t0]), np.zeros_like(base.theta), rss, spec, 0), v, dbic
+
+    def _entry(self, hf: HypFit, v: Verdict, dbic: float, spec: ModelSpec) -> dict:
+        h = hf.hyp
+        text, params = h.describe(hf.params, spec)
+        loc = h.location
+        return {"effect": h.effect, "category": h.category, "explanation": text,
+                "location": {"position_m": loc.get("position_m"), "span": loc.get("span"),
+                             "channels": list(loc.get("channels") or [])},
+                "frequency_hz": list(h.band_hz) if h.band_hz else None,
+                "parameters": params,
+                "evidence": {"heldout_nrmse_before": v.heldout_before, "heldout_nrmse_after": v.heldout_after,
+                             "delta_bic": float(dbic)}}
+
+
+def base_spec_spans(spec: ModelSpec):
+    return spec.spans
+
+
+def _combine(spec: ModelSpec, hf: HypFit) -> ModelSpec:
+    """Add the extension of ``hf`` to ``spec`` (keeping spec's calibrated parameters)."""
+    return hf.hyp.apply(spec, hf.params)
+
+
+def diagnose(passes: Sequence[Recording], ambient: Recording | None = None,
+             config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
+    return Diagnoser(config).fit(passes, ambient)

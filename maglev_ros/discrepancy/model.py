@@ -1,0 +1,306 @@
+"""The twin as the discrepancy core runs it: calibrated scales + physics extensions, by composition.
+
+``ModelSpec`` = nominal ``TwinConfig`` and line + calibrated scale factors (E, kb, kp, kv) +
+extension parameters. :func:`predict` runs the coupled twin (``coupling.TwinStepper``) along the
+recorded vehicle position/speed and returns each measured channel's prediction on its own time
+stamps. Extensions that need a hook inside the twin are built here from the twin's public
+pieces, without changing the twin files:
+
+- per-end bearing stiffness: :func:`assemble_span_ends` (the twin's span assembly with one
+  stiffness per end) replaces the span FE models of the stepper's ``Guideway``;
+- car-body bending: :func:`flexible_vehicle` adds one free-free bending DOF of the car body to the
+  twin's assembled rigid 18-DOF ``VehicleModel`` (secondary springs see psi(x) eta);
+- control delay: the levitation current lags the control law by a first-order lag with time
+  constant tau (``coil_inductance_h = tau R``: the twin's coil-dynamics hook), the first-order
+  Pade-free approximation of a pure delay, exact to O((w tau)^2) at the levitation frequencies;
+- sensor errors (scale, offset, drift) act on the predicted channel after the simulation;
+- stochastic additions (ambient excitation) act on band powers (see :mod:`.features`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Mapping
+
+import numpy as np
+from scipy.linalg import eigh
+
+from maglev_ros.errors import UserError
+from maglev_ros.twin.coupling import PassResult, TwinStepper
+from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_levitation
+from maglev_ros.twin.guideway import SpanFE, beam_element
+from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
+from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
+
+from .recording import Recording
+
+CAL_PARAMS = ("E", "kb", "kp", "kv")          # calibrated (log-scale factors)
+CAL_NAMES = {"E": "youngs_modulus_pa", "kb": "bearing_stiffness_n_per_m", "kp": "kp_a_per_m",
+             "kv": "kv_a_s_per_m"}
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Nominal twin + calibrated log-scales + extensions (all hashable, so predictions cache)."""
+    config: TwinConfig
+    spans: tuple[SpanSpec, ...]
+    cal: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)          # ln factors of CAL_PARAMS
+    span_e_factor: tuple[float, ...] = ()                   # per span (girder_stiffness_loss)
+    bearing_factor: tuple[tuple[float, float], ...] = ()    # per span (left, right) kb factors
+    control_lag_s: float = 0.0
+    carbody_bend_hz: float | None = None
+    carbody_zeta: float = 0.02
+    current_limit_a: float | None = None                    # |I - I0| limit (magnet_nonlinearity)
+    sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
+    ambient_log10_psd: float | None = None                  # modal force PSD (ambient_excitation)
+    resonator: tuple[float, float, float] | None = None     # discovery: (freq_hz, position_m, mass ratio)
+    dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
+    dt_max_s: float | None = None
+
+    def with_(self, **kw) -> "ModelSpec":
+        return replace(self, **kw)
+
+    # --- calibrated values ---------------------------------------------------------------
+    def cal_factor(self, name: str) -> float:
+        return math.exp(self.cal[CAL_PARAMS.index(name)])
+
+    def calibrated_values(self) -> dict:
+        g, lev = self.config.guideway, self.config.levitation
+        return {"youngs_modulus_pa": g.youngs_modulus_pa * self.cal_factor("E"),
+                "bearing_stiffness_n_per_m": g.bearing_stiffness_n_per_m * self.cal_factor("kb"),
+                "kp_a_per_m": lev.kp_a_per_m * self.cal_factor("kp"),
+                "kv_a_s_per_m": lev.kv_a_s_per_m * self.cal_factor("kv")}
+
+    def effective_spans(self) -> tuple[SpanSpec, ...]:
+        fe, fk = self.cal_factor("E"), self.cal_factor("kb")
+        out = []
+        for i, s in enumerate(self.spans):
+            e = fe * (self.span_e_factor[i] if i < len(self.span_e_factor) else 1.0)
+            p = replace(s.props, youngs_modulus_pa=s.props.youngs_modulus_pa * e,
+                        bearing_stiffness_n_per_m=s.props.bearing_stiffness_n_per_m * fk)
+            out.append(replace(s, props=p))
+        return tuple(out)
+
+    def effective_config(self) -> TwinConfig:
+        lev = self.config.levitation
+        cfg = with_levitation(self.config, kp_a_per_m=lev.kp_a_per_m * self.cal_factor("kp"),
+                              kv_a_s_per_m=lev.kv_a_s_per_m * self.cal_factor("kv"))
+        if self.control_lag_s > 0:
+            cfg = with_levitation(cfg, coil_inductance_h=self.control_lag_s * cfg.levitation.coil_resistance_ohm)
+        if self.dt_max_s is not None:
+            cfg = replace(cfg, numerics=replace(cfg.numerics, dt_max_s=self.dt_max_s))
+        return cfg
+
+
+def base_spec(metadata: Mapping, n_elements: int | None = None) -> ModelSpec:
+    """Nominal twin from the recording's design block (defaults where absent) and line."""
+    cfg = twin_config_from_metadata(metadata)
+    if n_elements is not None:
+        cfg = replace(cfg, numerics=replace(cfg.numerics, n_elements_per_span=int(n_elements)))
+    spans = line_spans(metadata.get("line"), cfg)
+    return ModelSpec(cfg, spans)
+
+
+# ------------------------------------------------------------------------------------------
+def assemble_span_ends(span: SpanSpec, n_elements: int, kb_left: float, kb_right: float) -> SpanFE:
+    """The twin's span assembly (``guideway.assemble_span``) with its own bearing stiffness at each
+    end; Rayleigh damping on the first two modes of the span as there."""
+    p = span.props
+    le = span.length_m / n_elements
+    ke, me = beam_element(p.bending_stiffness_n_m2, p.mass_per_length_kg_m, le)
+    ndof = 2 * (n_elements + 1)
+    K = np.zeros((ndof, ndof))
+    M = np.zeros((ndof, ndof))
+    for e in range(n_elements):
+        s = slice(2 * e, 2 * e + 4)
+        K[s, s] += ke
+        M[s, s] += me
+    removed = []
+    for dof, kb in ((0, kb_left), (2 * n_elements, kb_right)):
+        if math.isinf(kb):
+            removed.append(dof)
+        else:
+            K[dof, dof] += kb
+    free = np.array([i for i in range(ndof) if i not in removed])
+    K = K[np.ix_(free, free)]
+    M = M[np.ix_(free, free)]
+    w2 = eigh(K, M, eigvals_only=True, subset_by_index=[0, 1])
+    w1, w2_ = np.sqrt(np.clip(w2, 1e-12, None))
+    z = p.damping_ratio
+    return SpanFE(span, n_elements, M, K, free, 2 * z * w1 * w2_ / (w1 + w2_), 2 * z / (w1 + w2_))
+
+
+def _free_free_shape(L: float):
+    bl = 4.730040745
+    sig = (math.cosh(bl) - math.cos(bl)) / (math.sinh(bl) - math.sin(bl))
+
+    def psi(x):
+        b = bl * np.clip(np.asarray(x, dtype=float), 0.0, L) / L
+        return 0.5 * (np.cosh(b) + np.cos(b) - sig * (np.sinh(b) + np.sin(b)))   # 1 at the ends
+    return psi
+
+
+def flexible_vehicle(model: VehicleModel, bend_hz: float, zeta: float = 0.02) -> VehicleModel:
+    """Add the first free-free bending mode of the car body (uniform beam over the secondary
+    spring positions plus 15 % overhang each end) as DOF ``car.bend``, shape 1 at the body ends,
+    generalised mass from the uniform mass distribution (= m/4)."""
+    car = next(b for b in model.bodies if b.name == "car")
+    xs = [c.x_m for c in model.connections if c.body_b == "car" or c.body_a == "car"]
+    span = max(xs) - min(xs)
+    L = 1.3 * span if span > 0 else 25.0
+    x_start = 0.5 * (max(xs) + min(xs)) - L / 2
+    psi = _free_free_shape(L)
+    grid = np.linspace(0, L, 401)
+    mb = car.mass_kg * float(np.trapezoid(psi(grid) ** 2, grid)) / L
+    wb = 2 * math.pi * bend_hz
+    n = model.n_dof
+    M = np.zeros((n + 1, n + 1)); C = np.zeros_like(M); K = np.zeros_like(M)
+    M[:n, :n], C[:n, :n], K[:n, :n] = model.mass, model.damping, model.stiffness
+    M[n, n] = mb
+    K[n, n] = mb * wb ** 2
+    C[n, n] = 2 * zeta * mb * wb
+    for c in model.connections:
+        if "car" not in (c.body_a, c.body_b):
+            continue
+        t = model.point_row(c.body_a, c.x_m) - model.point_row(c.body_b, c.x_m)
+        sgn = 1.0 if c.body_a == "car" else -1.0
+        tf = np.append(t, sgn * float(psi(c.x_m - x_start)))
+        K += c.stiffness_n_per_m * (np.outer(tf, tf) - np.pad(np.outer(t, t), (0, 1)))
+        C += c.damping_n_s_per_m * (np.outer(tf, tf) - np.pad(np.outer(t, t), (0, 1)))
+    B = np.vstack([model.magnet_input, np.zeros((1, model.n_magnets))])
+    g = np.append(model.gravity_load_n, 0.0)
+    return VehicleModel(model.bodies, model.connections, model.magnets, model.dof_names + ("car.bend",),
+                        M, C, K, B, g)
+
+
+def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: float,
+                  start_position_m: float, start_speed_mps: float, t0_s: float) -> TwinStepper:
+    cfg = spec.effective_config()
+    spans = spec.effective_spans()
+    st = TwinStepper(cfg, spans, sensors=dict(sensors), fs_out_hz=fs_out_hz,
+                     start_position_m=start_position_m, start_speed_mps=start_speed_mps,
+                     t0_s=t0_s, init="rest")
+    changed = False
+    if spec.bearing_factor and any(f != (1.0, 1.0) for f in spec.bearing_factor):
+        fes = list(st.guideway.spans_fe)
+        for i, (fl, fr) in enumerate(spec.bearing_factor):
+            if (fl, fr) != (1.0, 1.0):
+                kb = spans[i].props.bearing_stiffness_n_per_m
+                fes[i] = assemble_span_ends(spans[i], cfg.numerics.n_elements_per_span, kb * fl, kb * fr)
+        st.guideway.spans_fe = tuple(fes)
+        changed = True
+    if changed:
+        st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+    if spec.carbody_bend_hz is not None:
+        vm = flexible_vehicle(st.vehicle.model, spec.carbody_bend_hz, spec.carbody_zeta)
+        eq = static_equilibrium(vm)
+        lev = LevitationModel.from_design(cfg.levitation, eq.magnet_force_n)
+        st.vehicle = VehicleSystem(vm, eq, lev, closed_loop(vm, lev))
+        changed = True
+    if changed:
+        st._setup_matrices()
+        st._x = np.zeros(st._nx)
+        st._u = np.zeros(3 * st._m)
+        nq = st.modal.n_modes
+        st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
+        st._F = st.vehicle.levitation.static_force_n.copy()
+    st._init_static()
+    return st
+
+
+def guideway_modal(spec: ModelSpec):
+    """Modal basis of the spec's guideway (with per-end bearings), for stochastic extensions."""
+    from maglev_ros.twin.guideway import Guideway
+    cfg = spec.effective_config()
+    spans = spec.effective_spans()
+    gw = Guideway(spans, cfg.numerics.n_elements_per_span)
+    if spec.bearing_factor:
+        fes = list(gw.spans_fe)
+        for i, (fl, fr) in enumerate(spec.bearing_factor):
+            if (fl, fr) != (1.0, 1.0):
+                kb = spans[i].props.bearing_stiffness_n_per_m
+                fes[i] = assemble_span_ends(spans[i], cfg.numerics.n_elements_per_span, kb * fl, kb * fr)
+        gw.spans_fe = tuple(fes)
+    return gw.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+
+
+def _limit_current(res: PassResult, spec: ModelSpec) -> PassResult:
+    return res
+
+
+_CACHE: dict = {}
+_CACHE_MAX = 256
+
+
+def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> PassResult | None:
+    """Run the twin along ``rec``'s vehicle position (None for an ambient recording)."""
+    if rec.kind != "pass" or rec.position_time_s is None:
+        return None
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, dropouts=())
+    key = (phys, id(rec), fs_out_hz)
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is rec:
+        return hit[1]
+    fs = fs_out_hz or max(c.sample_rate_hz for c in rec.channels.values())
+    sensors = {n: c.position_m for n, c in rec.channels.items()
+               if c.group in ("guideway_accel", "guideway_disp") and c.position_m is not None}
+    tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
+    t0 = max(rec.t0_s, float(tp[0])) - 1.0 / fs
+    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
+                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0)
+    parts = []
+    t = t0
+    t_end = rec.t1_s + 1.0 / fs
+    while t < t_end - 1e-12:
+        tn = min(t_end, t + 0.25)
+        parts.append(st.advance(tn, float(np.interp(tn, tp, vp))))
+        t = tn
+    res = PassResult.concat(parts)
+    if len(_CACHE) >= _CACHE_MAX:
+        _CACHE.clear()
+    _CACHE[key] = (rec, res)
+    return res
+
+
+def reference_value(rec: Recording, name: str) -> float:
+    """Value a channel reads at rest (gaps: nominal gap; everything else 0)."""
+    if rec.channels[name].group == "gap":
+        g0 = (rec.metadata.get("vehicle") or {}).get("nominal_gap_m")
+        return float(g0) if g0 is not None else 0.010
+    return 0.0
+
+
+def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> dict[str, np.ndarray]:
+    """Predicted time series of every channel of ``rec`` (on its time stamps), with sensor errors."""
+    res = simulate(spec, rec, fs_out_hz)
+    out = {}
+    for name, ch in rec.channels.items():
+        ref = reference_value(rec, name)
+        if res is None:
+            y = np.full(ch.time_s.size, ref)
+        else:
+            if ch.group == "guideway_accel":
+                src = res.guideway_accel_mps2[:, res.sensor(name)]
+            elif ch.group == "guideway_disp":
+                src = res.guideway_disp_m[:, res.sensor(name)]
+            elif ch.group == "vehicle_accel":
+                src = res.magnet_accel_mps2[:, ch.magnet - 1]
+            else:
+                src = res.magnet_gap_m[:, ch.magnet - 1]
+            y = np.interp(ch.time_s, res.time_s, src)
+        out[name] = y
+    for (name, s, o, d) in spec.sensor_error:
+        if name in out:
+            ref = reference_value(rec, name)
+            t = rec.channels[name].time_s
+            out[name] = ref + s * (out[name] - ref) + o + d * (t - t[0])
+    for (name, t0, t1, val) in spec.dropouts:
+        if name in out:
+            t = rec.channels[name].time_s
+            sel = (t >= t0) & (t <= t1)
+            out[name] = np.where(sel, val, out[name])
+    return out
+
+
+GROUP_UNIT_OF = {"guideway_accel": "m/s^2", "guideway_disp": "m", "vehicle_accel": "m/s^2", "gap": "m"}

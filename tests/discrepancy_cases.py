@@ -1,0 +1,388 @@
+"""Concealed-effect test recordings for the discrepancy diagnosis, generated from the twin.
+
+Each case = one ambient recording + two passes (different speeds) of a vehicle over a 3-span
+line, with ONE concealed effect (or none: "clean", only parameter changes against the design
+block; or an out-of-catalogue effect). Truth is kept in ``Case.truth``; the recordings carry only
+what a real recording carries (contract metadata with a nominal design block).
+
+The generator deliberately differs from what the diagnosis runs, in ways real recordings differ
+(``variant``): a finer FE mesh, a smaller integration step and 1 kHz simulation decimated to
+500 Hz through a causal anti-alias filter (Butterworth or Chebyshev, varying corner), white or
+pink/red sensor noise at varying levels, design values off the truth by several percent, and in
+the held-out variant an extra current-loop lag and the separated (precise-integration) solver.
+Effects are implemented here independently where that is cheap: a degraded bearing as an elastic
+pad in series with the nominal bearing, ambient vibration as random coloured point forces at
+random places on every girder (modal superposition), sensor faults on the recorded samples, a
+girder attachment (tuned-mass-like resonator) by an augmented FE eigenproblem.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import signal
+from scipy.linalg import eigh
+
+from maglev_ros.discrepancy.model import flexible_vehicle
+from maglev_ros.discrepancy.recording import Recording, recording_from_arrays
+from maglev_ros.twin.coupling import PassResult, TwinStepper
+from maglev_ros.twin.design import SpanSpec, line_spans, twin_config, with_levitation
+from maglev_ros.twin.guideway import Guideway, ModalBasis, SpanFE, beam_element
+from maglev_ros.twin.levitation import LevitationModel, VehicleSystem, closed_loop
+from maglev_ros.twin.vehicle import static_equilibrium
+
+L_SPAN = 12.384
+N_SPANS = 3
+FS_OUT = 500.0
+CATEGORY = {"bearing_stiffness": "boundary_condition", "control_delay": "control",
+            "magnet_nonlinearity": "magnetic_force", "ambient_excitation": "excitation",
+            "girder_stiffness_loss": "guideway_structure", "carbody_flexibility": "vehicle_structure",
+            "sensor_error": "instrumentation"}
+OOC = ("girder_attachment",)
+
+
+@dataclass
+class Case:
+    case_id: str
+    effect: str | None                  # catalogue name, "girder_attachment" (out of catalogue) or None
+    magnitude: float
+    truth: dict
+    ambient: Recording
+    passes: list
+    split: str                          # "tune" or "heldout"
+    variant: dict = field(default_factory=dict)
+
+    @property
+    def category(self) -> str | None:
+        return CATEGORY.get(self.effect) if self.effect else None
+
+
+def metadata(design: dict, kind: str, speed: float) -> dict:
+    spans = [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(N_SPANS)]
+    sensors = {}
+    for i in range(N_SPANS):
+        sensors[f"G{i + 1}A"] = {"topic": "/testline/guideway/accel", "quantity": "acceleration",
+                                 "direction": "vertical", "span": f"S{i + 1}",
+                                 "position_m": (i + 0.5) * L_SPAN, "side": "center"}
+        sensors[f"G{i + 1}Q"] = {"topic": "/testline/guideway/accel", "quantity": "acceleration",
+                                 "direction": "vertical", "span": f"S{i + 1}",
+                                 "position_m": (i + 0.2) * L_SPAN, "side": "center"}
+    sensors["G2D"] = {"topic": "/testline/guideway/displacement", "quantity": "displacement",
+                      "direction": "vertical", "span": "S2", "position_m": 1.5 * L_SPAN, "side": "center"}
+    if kind == "pass":
+        for k in (1, 8):
+            sensors[f"M{k}A"] = {"topic": "/testline/vehicle/accel", "quantity": "acceleration",
+                                 "direction": "vertical", "magnet": k}
+            sensors[f"M{k}G"] = {"topic": "/testline/vehicle/gap", "quantity": "gap", "magnet": k}
+    cfg = twin_config()
+    return {"schema": "maglev-testline/1", "description": "concealed-effect case",
+            "line": {"spans": spans}, "sensors": sensors,
+            "vehicle": {"magnet_offsets_m": list(cfg.vehicle.magnet_offsets_m), "nominal_gap_m": 0.010},
+            "run": {"kind": kind, "nominal_speed_mps": speed}, "design": design}
+
+
+# ------------------------------------------------------------------------------------------
+def _span_fe_series_pad(span: SpanSpec, n_el: int, k_pad_left: float, k_pad_right: float) -> SpanFE:
+    """Span on bearings with an elastic pad in series at each end (k = 1/(1/kb + 1/k_pad))."""
+    p = span.props
+    le = span.length_m / n_el
+    ke, me = beam_element(p.bending_stiffness_n_m2, p.mass_per_length_kg_m, le)
+    nd = 2 * (n_el + 1)
+    K = np.zeros((nd, nd)); M = np.zeros((nd, nd))
+    for e in range(n_el):
+        s = slice(2 * e, 2 * e + 4)
+        K[s, s] += ke; M[s, s] += me
+    for dof, kp in ((0, k_pad_left), (2 * n_el, k_pad_right)):
+        K[dof, dof] += 1.0 / (1.0 / p.bearing_stiffness_n_per_m + 1.0 / kp)
+    free = np.arange(nd)
+    w = np.sqrt(np.clip(eigh(K, M, eigvals_only=True, subset_by_index=[0, 1]), 1e-12, None))
+    z = p.damping_ratio
+    return SpanFE(span, n_el, M, K, free, 2 * z * w[0] * w[1] / (w[0] + w[1]), 2 * z / (w[0] + w[1]))
+
+
+def _attachment_modes(gw: Guideway, span_i: int, x_rel: float, f_att: float, mass_ratio: float,
+                      zeta_att: float, cutoff_hz: float) -> ModalBasis:
+    """Modal basis with a spring-mass attached to span ``span_i`` at ``x_rel`` (augmented eigenproblem;
+    modes keep their beam part; attachment damping folded into modal damping)."""
+    base = gw.modes(cutoff_hz, 2)
+    freqs, zetas, owner, vecs = [], [], [], []
+    for i, fe in enumerate(gw.spans_fe):
+        sel = base.span_index == i
+        if i != span_i:
+            freqs.append(base.freq_hz[sel]); zetas.append(base.damping_ratio[sel])
+            owner.append(np.full(sel.sum(), i)); vecs.append(base.vectors[i])
+            continue
+        n = fe.mass.shape[0]
+        m_span = fe.span.props.mass_per_length_kg_m * fe.span.length_m
+        ma = mass_ratio * m_span
+        ka = ma * (2 * math.pi * f_att) ** 2
+        row = fe.shape_matrix([fe.span.start_m + x_rel])[0]
+        K = np.zeros((n + 1, n + 1)); M = np.zeros((n + 1, n + 1))
+        K[:n, :n] = fe.stiffness; M[:n, :n] = fe.mass
+        M[n, n] = ma
+        t = np.append(row, -1.0)
+        K += ka * np.outer(t, t)
+        w2, phi = eigh(K, M)
+        f = np.sqrt(np.clip(w2, 0, None)) / (2 * math.pi)
+        k = max(int(np.sum(f <= cutoff_hz)), 3)
+        wv = 2 * math.pi * f[:k]
+        zb = fe.rayleigh_a / (2 * wv) + fe.rayleigh_b * wv / 2
+        part = phi[n, :k] ** 2 * ma      # share of attachment kinetic energy
+        freqs.append(f[:k]); zetas.append((1 - part) * zb + part * zeta_att)
+        owner.append(np.full(k, i)); vecs.append(phi[:n, :k])
+    return ModalBasis(np.concatenate(freqs), np.concatenate(zetas), np.concatenate(owner), gw.spans_fe,
+                      tuple(vecs))
+
+
+def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, variant: dict) -> TwinStepper:
+    if eff == "control_delay" or variant.get("extra_lag_s", 0) > 0:
+        lag = (tp.get("lag_s", 0.0) if eff == "control_delay" else 0.0) + variant.get("extra_lag_s", 0.0)
+        cfg = with_levitation(cfg, coil_inductance_h=lag * cfg.levitation.coil_resistance_ohm)
+    st = TwinStepper(cfg, spans, sensors=sensors, fs_out_hz=1000.0, start_position_m=x0, start_speed_mps=v,
+                     init="rest", method=variant.get("method", "newmark"), dt_max_s=variant.get("dt_s", 5e-4))
+    n_el = cfg.numerics.n_elements_per_span
+    changed = False
+    if eff == "bearing_stiffness":
+        fes = list(st.guideway.spans_fe)
+        i, end = tp["span_index"], tp["end"]
+        kb = spans[i].props.bearing_stiffness_n_per_m
+        # pad stiffness so that the series stiffness is kb * factor
+        f = tp["factor"]
+        kpad = kb * f / (1 - f)
+        fes[i] = _span_fe_series_pad(spans[i], n_el, kpad if end == 0 else 1e30, kpad if end == 1 else 1e30)
+        st.guideway.spans_fe = tuple(fes)
+        st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+        changed = True
+    if eff == "girder_attachment":
+        st.modal = _attachment_modes(st.guideway, tp["span_index"], tp["x_rel_m"], tp["freq_hz"],
+                                     tp["mass_ratio"], 0.03, cfg.numerics.mode_cutoff_hz)
+        changed = True
+    if changed:
+        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m)
+    if eff == "carbody_flexibility":
+        vm = flexible_vehicle(st.vehicle.model, tp["bend_hz"], 0.03)
+        eq = static_equilibrium(vm)
+        lev = LevitationModel.from_design(cfg.levitation, eq.magnet_force_n)
+        st.vehicle = VehicleSystem(vm, eq, lev, closed_loop(vm, lev))
+        changed = True
+    if changed:
+        st._setup_matrices()
+        st._x = np.zeros(st._nx); st._u = np.zeros(3 * st._m)
+        nq = st.modal.n_modes
+        st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
+        st._F = st.vehicle.levitation.static_force_n.copy()
+    st._init_static()
+    return st
+
+
+def _noise(rng, n, std, colour: str) -> np.ndarray:
+    w = rng.standard_normal(n)
+    if colour == "pink":
+        f = np.fft.rfftfreq(n)
+        f[0] = f[1]
+        w = np.fft.irfft(np.fft.rfft(w) / np.sqrt(f / f[-1]), n)
+    elif colour == "red":
+        w = signal.lfilter([1.0], [1.0, -0.9], w)
+    return std * w / (np.std(w) + 1e-30)
+
+
+def _aa_decimate(x: np.ndarray, variant: dict) -> np.ndarray:
+    kind, corner = variant.get("aa", ("butter", 0.4))
+    wn = corner * FS_OUT / (1000.0 / 2)
+    sos = (signal.butter(4, wn, output="sos") if kind == "butter"
+           else signal.cheby1(6, 0.5, wn, output="sos"))
+    y = signal.sosfilt(sos, x - x[0]) + x[0]
+    return y[1::2]
+
+
+def _ambient_response(rng, modal: ModalBasis, spans, sensors_x, n: int, dt: float, level: float):
+    """Guideway (disp, accel) at sensors from random coloured point forces, 2 random points per span."""
+    pts = np.concatenate([s.start_m + rng.uniform(0.1, 0.9, 2) * s.length_m for s in spans])
+    fs = 1.0 / dt
+    sos = signal.butter(2, [4.0 / (fs / 2), 70.0 / (fs / 2)], btype="band", output="sos")
+    forces = np.stack([signal.sosfilt(sos, signal.lfilter([1.0], [1.0, -0.5], rng.standard_normal(n)))
+                       for _ in pts], axis=1)
+    phi = modal.shapes_at(pts)                     # (np, nm)
+    fq = forces @ phi                               # (n, nm)
+    w, z = modal.omega_rad_s, modal.damping_ratio
+    h = dt
+    khat = w ** 2 + 2 * z * w * (2 / h) + 4 / h ** 2
+    q = np.zeros(w.size); qd = np.zeros_like(q); qdd = np.zeros_like(q)
+    Q = np.empty((n, w.size)); A = np.empty_like(Q)
+    for i in range(n):
+        qn = (fq[i] + (4 / h ** 2) * q + (4 / h) * qd + qdd + 2 * z * w * ((2 / h) * q + qd)) / khat
+        qdd = (4 / h ** 2) * (qn - q) - (4 / h) * qd - qdd
+        qd = (2 / h) * (qn - q) - qd
+        q = qn
+        Q[i] = q; A[i] = qdd
+    S = modal.shapes_at(np.asarray(sensors_x))
+    disp, acc = Q @ S.T, A @ S.T
+    scale = level / (np.std(acc[n // 4:]) + 1e-30)   # level = RMS accel over the sensors
+    return disp * scale, acc * scale
+
+
+def _apply_sensor_fault(sig: dict, name: str, tp: dict, t: np.ndarray, ref: float) -> None:
+    y = sig[name]
+    kind = tp["kind"]
+    if kind == "scale":
+        sig[name] = ref + tp["value"] * (y - ref)
+    elif kind == "offset":
+        sig[name] = y + tp["value"]
+    elif kind == "drift":
+        sig[name] = y + tp["value"] * (t - t[0])
+    elif kind == "dropout":
+        a = int(tp["start_frac"] * y.size); b = a + int(tp["len_frac"] * y.size)
+        y = y.copy(); y[a:b] = ref
+        sig[name] = y
+
+
+NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 0.004, "gap": 1.0e-6}
+
+
+def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, speeds=(22.0, 30.0),
+              split: str = "tune", variant: dict | None = None, design_error: dict | None = None) -> Case:
+    rng = np.random.default_rng(seed)
+    variant = dict(variant or {})
+    cfg_true = twin_config()
+    cfg_true = replace(cfg_true, numerics=replace(cfg_true.numerics,
+                                                  n_elements_per_span=variant.get("n_el", 24)))
+    derr = design_error if design_error is not None else {
+        "E": rng.uniform(-0.08, 0.08), "kb": rng.uniform(-0.3, 0.3), "kp": rng.uniform(-0.08, 0.08)}
+    g, lev = cfg_true.guideway, cfg_true.levitation
+    design = {"guideway": {"youngs_modulus_pa": g.youngs_modulus_pa / (1 + derr["E"]),
+                           "bearing_stiffness_n_per_m": g.bearing_stiffness_n_per_m / (1 + derr["kb"])},
+              "levitation": {"kp_a_per_m": lev.kp_a_per_m / (1 + derr["kp"])}}
+    md_line = {"spans": [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(N_SPANS)]}
+    spans = list(line_spans(md_line, cfg_true))
+    tp = dict(params)
+    if effect == "girder_stiffness_loss":
+        i = tp["span_index"]
+        spans[i] = replace(spans[i], props=replace(spans[i].props,
+                                                   youngs_modulus_pa=spans[i].props.youngs_modulus_pa * (1 - tp["loss"])))
+    noise_scale = variant.get("noise_scale", 1.0)
+    colour = variant.get("noise_colour", "white")
+    md_pass = [metadata(design, "pass", v) for v in speeds]
+    md_amb = metadata(design, "ambient", 0.0)
+    gsens = {k: s["position_m"] for k, s in md_amb["sensors"].items()}
+    passes = []
+    for v, md in zip(speeds, md_pass):
+        offs = np.array(cfg_true.vehicle.magnet_offsets_m)
+        x0 = -offs.max() - v * 1.0
+        dur = (N_SPANS * L_SPAN - offs.min() + v * 1.0 - x0) / v
+        st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, effect, tp, variant)
+        res = st.advance(dur, v)
+        t_hi = res.time_s
+        sig_hi = {}
+        for k, s in md["sensors"].items():
+            if s["topic"].endswith("guideway/accel"):
+                sig_hi[k] = res.guideway_accel_mps2[:, res.sensor(k)].copy()
+            elif s["topic"].endswith("displacement"):
+                sig_hi[k] = res.guideway_disp_m[:, res.sensor(k)].copy()
+            elif s["topic"].endswith("vehicle/accel"):
+                sig_hi[k] = res.magnet_accel_mps2[:, s["magnet"] - 1].copy()
+            else:
+                sig_hi[k] = res.magnet_gap_m[:, s["magnet"] - 1].copy()
+        if effect == "ambient_excitation":
+            names = [k for k in md["sensors"] if md["sensors"][k]["topic"].startswith("/testline/guideway")]
+            d, a = _ambient_response(rng, st.modal, spans, [gsens[k] for k in names], t_hi.size, 1e-3,
+                                     tp["rms_mps2"])
+            for j, k in enumerate(names):
+                sig_hi[k] = sig_hi[k] + (d[:, j] if k.endswith("D") else a[:, j])
+        t = t_hi[1::2]
+        sig = {}
+        for k, y in sig_hi.items():
+            grp = md["sensors"][k]["topic"]
+            gname = ("guideway_accel" if grp.endswith("guideway/accel") else "guideway_disp" if grp.endswith("displacement")
+                     else "vehicle_accel" if grp.endswith("vehicle/accel") else "gap")
+            y = _aa_decimate(y, variant)
+            sig[k] = y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour)
+        if effect == "sensor_error":
+            ref = 0.010 if tp["channel"].endswith("G") else 0.0
+            _apply_sensor_fault(sig, tp["channel"], tp, t, ref)
+        pos_t = t[::5]
+        pos = np.interp(pos_t, t_hi, res.position_m) + rng.normal(0, 1e-3, pos_t.size)
+        spd = np.interp(pos_t, t_hi, res.speed_mps)
+        passes.append(recording_from_arrays(md, {k: (t, y) for k, y in sig.items()}, (pos_t, pos, spd),
+                                            source=f"{case_id}/pass_{v:g}"))
+    # ambient recording (guideway only)
+    n_amb = int(20.0 * 1000)
+    t_amb = np.arange(1, n_amb + 1) * 1e-3
+    names = list(gsens)
+    amb_hi = {k: np.zeros(n_amb) for k in names}
+    if effect == "ambient_excitation":
+        gw = Guideway(spans, cfg_true.numerics.n_elements_per_span)
+        modal = gw.modes(cfg_true.numerics.mode_cutoff_hz, 2)
+        d, a = _ambient_response(rng, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, tp["rms_mps2"])
+        for j, k in enumerate(names):
+            amb_hi[k] = d[:, j] if k.endswith("D") else a[:, j]
+    amb = {}
+    for k, y in amb_hi.items():
+        gname = "guideway_disp" if k.endswith("D") else "guideway_accel"
+        y = _aa_decimate(y, variant)
+        amb[k] = (t_amb[1::2], y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour))
+    ambient = recording_from_arrays(md_amb, amb, None, source=f"{case_id}/ambient")
+    truth = {"effect": effect, "category": CATEGORY.get(effect) if effect else None, "params": tp,
+             "design_error": derr, "location": _truth_location(effect, tp)}
+    return Case(case_id, effect, float(params.get("magnitude", 0.0)), truth, ambient, passes, split, variant)
+
+
+def _truth_location(effect, tp) -> dict | None:
+    if effect in ("girder_stiffness_loss", "girder_attachment"):
+        i = tp["span_index"]
+        x = i * L_SPAN + tp.get("x_rel_m", 0.5 * L_SPAN)
+        return {"position_m": x, "span": f"S{i + 1}"}
+    if effect == "bearing_stiffness":
+        i, e = tp["span_index"], tp["end"]
+        return {"position_m": (i + e) * L_SPAN, "span": f"S{i + 1}"}
+    if effect == "sensor_error":
+        return {"channel": tp["channel"]}
+    return None
+
+
+TUNE_VARIANT = {"n_el": 24, "noise_colour": "white", "aa": ("butter", 0.4), "dt_s": 5e-4}
+HELDOUT_VARIANT = {"n_el": 32, "noise_colour": "pink", "aa": ("cheby", 0.36), "dt_s": 4e-4,
+                   "extra_lag_s": 3e-4, "noise_scale": 1.5}
+
+
+def case_specs(split: str = "tune") -> list[dict]:
+    """The benchmark list: every catalogue effect at several magnitudes/locations, clean and
+    out-of-catalogue cases. ``split`` "tune" (used while developing) or "heldout" (never tuned on:
+    other seeds, speeds, mesh, noise colour, anti-alias filter, controller lag)."""
+    base_seed = 1000 if split == "tune" else 5000
+    rng = np.random.default_rng(base_seed)
+    speeds = (22.0, 30.0) if split == "tune" else (26.0, 34.0)
+    specs = []
+
+    def add(effect, params):
+        specs.append({"effect": effect, "params": params, "seed": base_seed + len(specs), "speeds": speeds})
+    for loss in (0.2, 0.35):
+        for i in ((0, 2) if split == "tune" else (1, 2)):
+            add("girder_stiffness_loss", {"span_index": i, "loss": loss, "magnitude": loss})
+    for f in (0.02, 0.1):
+        for i, e in (((0, 1), (2, 0)) if split == "tune" else ((1, 0), (2, 1))):
+            add("bearing_stiffness", {"span_index": i, "end": e, "factor": f, "magnitude": 1 - f})
+    for lv in (0.02, 0.05, 0.1):
+        add("ambient_excitation", {"rms_mps2": lv, "magnitude": lv})
+    ch = ["G2A", "M1A", "G3Q", "M8G"] if split == "tune" else ["G1A", "M8A", "G2Q", "M1G"]
+    add("sensor_error", {"channel": ch[0], "kind": "scale", "value": 1.35, "magnitude": 0.35})
+    add("sensor_error", {"channel": ch[1], "kind": "scale", "value": 0.6, "magnitude": 0.4})
+    add("sensor_error", {"channel": ch[2], "kind": "offset", "value": 0.05, "magnitude": 0.05})
+    add("sensor_error", {"channel": ch[3], "kind": "drift", "value": 2e-5, "magnitude": 2e-5})
+    add("sensor_error", {"channel": ch[0], "kind": "dropout", "start_frac": 0.5, "len_frac": 0.2, "magnitude": 0.2})
+    for lag in (0.004, 0.008):
+        add("control_delay", {"lag_s": lag, "magnitude": lag})
+    for fb in (6.0, 9.0):
+        add("carbody_flexibility", {"bend_hz": fb, "magnitude": fb})
+    for k in range(6):
+        add(None, {"magnitude": 0.0})
+    for fa, i in ((38.0, 1), (55.0, 0)):
+        add("girder_attachment", {"span_index": i, "x_rel_m": 0.4 * L_SPAN, "freq_hz": fa,
+                                  "mass_ratio": 0.03, "magnitude": fa})
+    return specs
+
+
+def build_case(i: int, spec: dict, split: str) -> Case:
+    variant = TUNE_VARIANT if split == "tune" else HELDOUT_VARIANT
+    return make_case(f"{split}-{i:02d}-{spec['effect'] or 'clean'}", spec["effect"], spec["params"],
+                     seed=spec["seed"], speeds=spec["speeds"], split=split, variant=variant)

@@ -16,9 +16,11 @@ Conversions (all provided as methods / functions):
 Reference forms (constants cited in each factory):
 
 * US FRA track classes 1-6, vertical profile, in the metric form of Chinese railway literature
-  (Zhai, *Vehicle-Track Coupled Dynamics*, Springer 2020, sec. 3 "American track spectra"; the
-  class constants go back to the FRA track-geometry studies, e.g. Garg & Dukkipati,
-  *Dynamics of Railway Vehicle Systems*, 1984, table 8.x):
+  (Zhai, *Vehicle-Track Coupled Dynamics: Theory and Applications*, Springer 2020, chapter on
+  track irregularity spectra, "American track spectra"; the class constants go back to the FRA
+  track-geometry studies, see also Garg & Dukkipati, *Dynamics of Railway Vehicle Systems*,
+  1984). The numbers below were typed from that table; check them against the printed source
+  before quoting them in a report:
   S(Omega) = k A_v Omega_c^2 / (Omega^2 (Omega^2 + Omega_c^2)), k = 0.25, Omega_c = 0.8245
   rad/m for every class, A_v [cm^2 rad/m] = 1.2107, 1.0181, 0.6816, 0.5376, 0.2095, 0.0339 for
   classes 1..6 (class 6 is the best track). The book's S is in cm^2/(rad/m); here A_v is

@@ -1,0 +1,162 @@
+"""Node ``twin``: the digital twin running along a recording (thin adapter over twin/online.py).
+
+Subscribes /testline/metadata (latched), /testline/vehicle/position, /testline/vehicle/accel,
+/testline/vehicle/gap, /testline/guideway/accel, /testline/guideway/displacement,
+/maglev/irregularity (IrregularityProfile) and /maglev/twin/parameters (TwinParameters, latched).
+Publishes, for every measured block it can predict, /maglev/twin/predicted/<group> and
+/maglev/twin/residual/<group> (SensorBlock, same stamp/rate/channels/units as the measured
+block; group = guideway_accel, guideway_displacement, vehicle_accel, vehicle_gap).
+
+Parameters: ``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
+``seed`` (0), ``method`` (newmark | separated), ``fs_hz`` (0 = fastest measured rate),
+``dt_max_s`` (2.5e-4), ``resync_m`` (0.05).
+"""
+from __future__ import annotations
+
+import array
+import json
+import sys
+
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from maglev_msgs.msg import IrregularityProfile, SensorBlock, TwinParameters
+from maglev_ros.nodes._common import QOS_STREAM, qos_for, run_node
+
+TOPIC_IRREGULARITY = "/maglev/irregularity"
+TOPIC_PARAMETERS = "/maglev/twin/parameters"
+MAX_EARLY_BLOCKS = 2000
+
+
+def _to_block(msg):
+    import numpy as np
+    from maglev_ros.sensor_block import Block
+    chans = tuple(msg.channels)
+    try:
+        data = np.frombuffer(msg.data, dtype=np.float32)   # array.array('f'): no copy
+    except TypeError:
+        data = np.asarray(msg.data, dtype=np.float32)
+    n = len(chans)
+    data = data.reshape(-1, n) if n else data.reshape(0, 0)
+    stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    return Block(int(stamp), msg.header.frame_id, float(msg.sample_rate_hz), chans, tuple(msg.units), data)
+
+
+def _to_msg(block) -> SensorBlock:
+    m = SensorBlock()
+    m.header.stamp.sec = int(block.stamp_ns // 1_000_000_000)
+    m.header.stamp.nanosec = int(block.stamp_ns % 1_000_000_000)
+    m.header.frame_id = block.frame_id
+    m.sample_rate_hz = float(block.sample_rate_hz)
+    m.channels = list(block.channels)
+    m.units = list(block.units)
+    buf = array.array("f")
+    buf.frombytes(block.data.astype("float32").tobytes())
+    m.data = buf
+    return m
+
+
+class TwinNode(Node):
+    def __init__(self) -> None:
+        super().__init__("twin")
+        from maglev_ros.twin.online import GROUP_TOPICS, PREDICTED_PREFIX, RESIDUAL_PREFIX
+        p = self.declare_parameter
+        self.opts = {
+            "psd": p("irregularity_psd", "maglev_001").value,
+            "band_m": list(p("irregularity_band_m", [1.0, 20.0]).value),
+            "seed": int(p("seed", 0).value),
+            "method": p("method", "newmark").value,
+            "fs_hz": float(p("fs_hz", 0.0).value) or None,
+            "dt_max_s": float(p("dt_max_s", 2.5e-4).value),
+            "resync_m": float(p("resync_m", 0.05).value),
+        }
+        self.core = None
+        self.early: list = []
+        self.pending_params = None
+        self.pending_profile = None
+        self.pubs = {}
+        for g in GROUP_TOPICS:
+            self.pubs[PREDICTED_PREFIX + g] = self.create_publisher(SensorBlock, PREDICTED_PREFIX + g, QOS_STREAM)
+            self.pubs[RESIDUAL_PREFIX + g] = self.create_publisher(SensorBlock, RESIDUAL_PREFIX + g, QOS_STREAM)
+        self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
+        for topic in ("/testline/vehicle/position", *GROUP_TOPICS.values()):
+            self.create_subscription(SensorBlock, topic, self._cb(topic), QOS_STREAM)
+        self.create_subscription(IrregularityProfile, TOPIC_IRREGULARITY, self._on_profile, QOS_STREAM)
+        self.create_subscription(TwinParameters, TOPIC_PARAMETERS, self._on_params, qos_for(TOPIC_PARAMETERS))
+        self.n_in = 0
+        self.n_out = 0
+
+    # ------------------------------------------------------------------ inputs
+    def _on_metadata(self, msg) -> None:
+        from maglev_ros.errors import UserError
+        from maglev_ros.twin.online import OnlineTwin
+        try:
+            md = json.loads(msg.data)
+            self.core = OnlineTwin(md, psd=self.opts["psd"], band_m=self.opts["band_m"], seed=self.opts["seed"],
+                                   method=self.opts["method"], fs_hz=self.opts["fs_hz"],
+                                   dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"])
+        except (UserError, ValueError) as exc:
+            self.get_logger().error(f"/testline/metadata: cannot build the twin: {exc}")
+            self.core = None
+            return
+        self.get_logger().info(f"twin built: {len(self.core.guideway_x)} guideway and "
+                               f"{len(self.core.magnet_of)} magnet channels predictable")
+        if self.pending_params is not None:
+            self._on_params(self.pending_params)
+        if self.pending_profile is not None:
+            self._on_profile(self.pending_profile)
+        early, self.early = self.early, []
+        for topic, blk in early:
+            self._feed(topic, blk)
+
+    def _cb(self, topic: str):
+        def on_msg(msg) -> None:
+            blk = _to_block(msg)
+            self.n_in += 1
+            if self.core is None:
+                if len(self.early) < MAX_EARLY_BLOCKS:
+                    self.early.append((topic, blk))
+                return
+            self._feed(topic, blk)
+        return on_msg
+
+    def _feed(self, topic: str, blk) -> None:
+        from maglev_ros.errors import UserError
+        try:
+            outs = self.core.on_block(topic, blk)
+        except UserError as exc:
+            self.get_logger().error(f"{topic}: {exc}")
+            return
+        for o in outs:
+            self.pubs[o.predicted_topic].publish(_to_msg(o.predicted))
+            self.pubs[o.residual_topic].publish(_to_msg(o.residual))
+            self.n_out += 1
+
+    def _on_params(self, msg) -> None:
+        from maglev_ros.errors import UserError
+        if self.core is None:
+            self.pending_params = msg
+            return
+        try:
+            adopted = self.core.set_parameters(list(msg.names), list(msg.values))
+            self.get_logger().info(f"adopted twin parameters rev {msg.revision}: {adopted}")
+        except UserError as exc:
+            self.get_logger().error(f"{TOPIC_PARAMETERS}: {exc}")
+
+    def _on_profile(self, msg) -> None:
+        from maglev_ros.errors import UserError
+        if self.core is None:
+            self.pending_profile = msg
+            return
+        try:
+            self.core.set_irregularity_profile(msg.start_position_m, msg.spacing_m, list(msg.irregularity_m))
+        except UserError as exc:
+            self.get_logger().error(f"{TOPIC_IRREGULARITY}: {exc}")
+
+
+def main(args=None) -> int:
+    return run_node(TwinNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -386,3 +386,49 @@ def build_case(i: int, spec: dict, split: str) -> Case:
     variant = TUNE_VARIANT if split == "tune" else HELDOUT_VARIANT
     return make_case(f"{split}-{i:02d}-{spec['effect'] or 'clean'}", spec["effect"], spec["params"],
                      seed=spec["seed"], speeds=spec["speeds"], split=split, variant=variant)
+
+
+# ------------------------------------------------------------------------------------------
+def write_recording_bag(rec: Recording, path, block_s: float = 0.1) -> None:
+    """Write a Recording as a contract bag (MCAP) with the project's BagWriter."""
+    from maglev_ros.bag_writer import BagWriter
+    from maglev_ros.sensor_block import Block
+    from maglev_ros.discrepancy.recording import GROUP_UNIT, TOPIC_GROUP
+    topic_of = {g: t for t, g in TOPIC_GROUP.items()}
+    by_topic: dict = {}
+    for n, ch in rec.channels.items():
+        by_topic.setdefault(topic_of[ch.group], []).append(ch)
+    with BagWriter(path, dict(rec.metadata)) as w:
+        streams = []
+        for topic, chans in by_topic.items():
+            t = chans[0].time_s
+            data = np.stack([c.values for c in chans], axis=1)
+            streams.append((topic, t, data, tuple(c.name for c in chans), tuple(GROUP_UNIT[c.group] for c in chans),
+                            chans[0].sample_rate_hz))
+        if rec.position_time_s is not None:
+            pt = rec.position_time_s
+            streams.append(("/testline/vehicle/position", pt, np.stack([rec.position_m, rec.speed_mps], axis=1),
+                            ("position_m", "speed_mps"), ("m", "m/s"), float(1.0 / np.median(np.diff(pt)))))
+        blocks = []
+        for topic, t, data, names, units, fs in streams:
+            nb = max(1, int(round(block_s * fs)))
+            for a in range(0, t.size, nb):
+                blocks.append((int(round(t[a] * 1e9)), topic,
+                               Block(int(round(t[a] * 1e9)), "testline", fs, names, units,
+                                     np.ascontiguousarray(data[a:a + nb], dtype=np.float32))))
+        blocks.sort(key=lambda b: b[0])
+        for _, topic, b in blocks:
+            w.write_block(topic, b)
+
+
+def write_case_bags(case: Case, directory) -> tuple[str, list[str]]:
+    from pathlib import Path
+    d = Path(directory)
+    amb = d / "ambient"
+    write_recording_bag(case.ambient, amb)
+    ps = []
+    for k, p in enumerate(case.passes):
+        q = d / f"pass{k + 1}"
+        write_recording_bag(p, q)
+        ps.append(str(q))
+    return str(amb), ps

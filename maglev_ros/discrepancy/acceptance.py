@@ -1,7 +1,9 @@
 """Acceptance gates for a fitted extension (all must pass; the reasons of a failure are kept).
 
 1. Held-out fit: NRMSE on held-out passes (not used for fitting) drops by at least
-   ``min_rel_gain`` relatively AND ``min_abs_gain`` absolutely.
+   ``min_rel_gain`` relatively AND ``min_abs_gain`` absolutely, AND the held-out log-likelihood
+   ratio (Gaussian, effective sample size = residual count / 2) is at least ``min_heldout_llr``
+   (the parameters come from the training pass, so no penalty is due here).
 2. Penalised fit: BIC of the extended model beats the calibrated twin by ``max_delta_bic`` (< 0)
    on the training passes (effective sample size = residual count / 2 for the 50 % frame overlap).
 3. Physically plausible parameters (each catalogue entry's own bounds).
@@ -19,8 +21,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class AcceptanceConfig:
-    min_rel_gain: float = 0.15
-    min_abs_gain: float = 0.01
+    min_rel_gain: float = 0.05
+    min_abs_gain: float = 0.005
+    min_heldout_llr: float = 10.0
     max_delta_bic: float = -10.0
     max_collinear: float = 0.97
 
@@ -44,8 +47,11 @@ class Verdict:
 
 
 def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausible: tuple[bool, str],
-          collinearity: float, cfg: AcceptanceConfig = AcceptanceConfig()) -> Verdict:
+          collinearity: float, cfg: AcceptanceConfig = AcceptanceConfig(),
+          heldout_llr: float | None = None) -> Verdict:
     why = []
+    if heldout_llr is not None and heldout_llr < cfg.min_heldout_llr:
+        why.append(f"held-out log-likelihood gain {heldout_llr:.1f} is below {cfg.min_heldout_llr:g}")
     gain = heldout_before - heldout_after
     if not (gain >= cfg.min_rel_gain * heldout_before and gain >= cfg.min_abs_gain):
         why.append(f"held-out NRMSE {heldout_before:.3f} -> {heldout_after:.3f} is not a clear improvement "

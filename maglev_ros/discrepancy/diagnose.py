@@ -34,6 +34,7 @@ class DiagnoseConfig:
     acceptance: AcceptanceConfig = AcceptanceConfig()
     base_max_nfev: int = 6
     dropout_min_s: float = 0.1
+    dt_max_s: float | None = None     # integration step of the diagnosing twin (None: design numerics)
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,7 +73,7 @@ class Diagnoser:
         for p in passes:
             require_pass(p)
         cfg = self.config
-        base0 = base_spec(passes[0].metadata, cfg.n_elements)
+        base0 = base_spec(passes[0].metadata, cfg.n_elements).with_(dt_max_s=cfg.dt_max_s)
         train_recs, test_recs = [passes[0]], list(passes[1:]) or [passes[0]]
         same_heldout = len(passes) == 1
         rd_train = [prepare(r, base0) for r in train_recs]
@@ -109,6 +110,13 @@ class Diagnoser:
         rss0 = float(base.r0 @ base.r0)
         bic0 = bic(rss0, n_eff, 0)
         held_before, _ = fit_report(base.spec, rd_test)
+        r_test0 = residual_vector(base.spec, rd_test)
+        rss_test0 = float(r_test0 @ r_test0)
+        n_test = max(10, r_test0.size // 2)
+
+        def held_llr(spec):
+            r = residual_vector(spec, rd_test)
+            return 0.5 * n_test * math.log(rss_test0 / max(float(r @ r), 1e-300))
         for h in cands:
             try:
                 hf = fit_hypothesis(base, h, rd_train)
@@ -126,7 +134,8 @@ class Diagnoser:
             if h.needs_sim:
                 jcol = residual_vector(h.apply(base.spec, np.array(h.trial)), rd_train) - base.r0
                 col = collinearity(jcol, base.jac)
-            v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance)
+            v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
+                      held_llr(hf.spec))
             fits.append((hf, v, dbic))
         for (n, t0, t1, val) in drops:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))

@@ -1,0 +1,51 @@
+"""``maglev-ros diagnose --ambient BAG --pass BAG [--pass BAG ...] --out DIR``.
+
+Calibrates the twin on the first pass, locates where twin and recordings differ, tests the
+catalogue of missing physics (held out on the other passes) and writes DIR/report.json
+(schema ``maglev-diagnosis/1``) and DIR/report.html (self-contained, plots inline).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from maglev_ros.errors import UserError
+
+NAME = "diagnose"
+HELP = "locate twin/recording mismatches, name the missing physics, fit it, report (JSON + HTML)"
+ORDER = 60
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--ambient", metavar="BAG", help="ambient-vibration recording (run.kind ambient)")
+    p.add_argument("--pass", dest="passes", metavar="BAG", action="append", required=True,
+                   help="pass recording; the first calibrates, the others are held out (repeatable)")
+    p.add_argument("--out", metavar="DIR", required=True, help="output directory (report.json, report.html)")
+    p.add_argument("--no-html", action="store_true", help="write report.json only")
+
+
+def run(args) -> int:
+    from maglev_ros.discrepancy.diagnose import diagnose
+    from maglev_ros.discrepancy.recording import load_recording
+    passes = [load_recording(p) for p in args.passes]
+    ambient = None
+    if args.ambient:
+        ambient = load_recording(args.ambient)
+        if ambient.kind != "ambient":
+            raise UserError(f"{args.ambient}: run.kind: expected 'ambient' for --ambient, got {ambient.kind!r}")
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create directory ({exc.strerror})") from None
+    d = diagnose(passes, ambient)
+    (out / "report.json").write_text(json.dumps(d.to_dict(), indent=1))
+    if not args.no_html:
+        from maglev_ros.discrepancy.report_html import render
+        (out / "report.html").write_text(render(d))
+    rep = d.to_dict()
+    print(f"fit before {rep['fit_before']['nrmse']:.3f}, after {rep['fit_after']['nrmse']:.3f}; "
+          f"{len(rep['mismatches'])} mismatch(es); missing physics: "
+          f"{', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}")
+    print(f"wrote {out / 'report.json'}" + ("" if args.no_html else f" and {out / 'report.html'}"))
+    return 0

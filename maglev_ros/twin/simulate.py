@@ -141,6 +141,11 @@ def apply_sets(doc: dict, sets: Sequence[str], source: str = "--set") -> dict:
             value = yaml.safe_load(raw)
         except yaml.YAMLError:
             raise UserError(f"{source} {item!r}: value is not valid YAML") from None
+        if isinstance(value, str):
+            try:                      # YAML 1.1 reads 4.0e10 (no exponent sign) as a string
+                value = float(value)
+            except ValueError:
+                pass
         parts = key.split(".")
         if not key or any(not p for p in parts):
             raise UserError(f"{source} {item!r}: empty key")

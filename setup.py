@@ -38,6 +38,8 @@ setup(
         "rosbags>=0.10",
         "mcap>=1.1",
         "numba>=0.60",
+        "torch==2.13.0",
+        "pymoo>=0.6.1",
     ],
     extras_require={"test": ["pytest>=8", "pytest-timeout>=2.3"]},
     zip_safe=True,

@@ -1,0 +1,89 @@
+"""Twin extensions built by composition: per-end bearings, car-body bending, control lag, sensor errors."""
+import math
+
+import numpy as np
+import pytest
+from scipy.linalg import eigh
+
+from maglev_ros.discrepancy.model import (ModelSpec, _free_free_shape, assemble_span_ends, base_spec,
+                                          flexible_vehicle)
+from maglev_ros.twin.design import GuidewayProps, SpanSpec, twin_config, with_levitation
+from maglev_ros.twin.guideway import assemble_span
+from maglev_ros.twin.levitation import LevitationModel, build_vehicle, closed_loop
+from maglev_ros.twin.vehicle import static_equilibrium, vehicle_from_design
+
+L = 12.384
+P = GuidewayProps(4.0e10, 2500.0, 1.5, 0.5, 3.0e10, 0.02)
+SPAN = SpanSpec("S1", 0.0, L, P)
+
+
+def _f1(fe):
+    w, _ = fe.eig()
+    return w[0] / (2 * math.pi)
+
+
+def test_equal_ends_match_the_twin_span():
+    a = assemble_span(SPAN, 16)
+    b = assemble_span_ends(SPAN, 16, P.bearing_stiffness_n_per_m, P.bearing_stiffness_n_per_m)
+    assert np.allclose(a.stiffness, b.stiffness) and np.allclose(a.mass, b.mass)
+    assert b.rayleigh_a == pytest.approx(a.rayleigh_a) and b.rayleigh_b == pytest.approx(a.rayleigh_b)
+
+
+def test_rigid_ends_give_the_simply_supported_frequency():
+    fe = assemble_span_ends(SPAN, 16, math.inf, math.inf)
+    ref = (math.pi / L) ** 2 * math.sqrt(P.bending_stiffness_n_m2 / P.mass_per_length_kg_m) / (2 * math.pi)
+    assert _f1(fe) == pytest.approx(ref, rel=1e-3)
+
+
+def test_one_soft_bearing_lowers_the_mode_towards_rigid_rotation():
+    kb = P.bearing_stiffness_n_per_m
+    f = [_f1(assemble_span_ends(SPAN, 16, kb, kb * r)) for r in (1.0, 0.1, 0.01, 1e-4)]
+    assert all(a > b for a, b in zip(f, f[1:]))
+    # one end on a vanishing spring: the girder rotates about the other bearing as a rigid body,
+    # f = sqrt(3 k_end / m_total) / 2 pi (rigid bar pinned at one end, spring at the other)
+    k = kb * 1e-4
+    ref = math.sqrt(3 * k / (P.mass_per_length_kg_m * L)) / (2 * math.pi)
+    assert f[-1] == pytest.approx(ref, rel=0.02)
+
+
+def test_free_free_shape_generalised_mass_is_a_quarter():
+    psi = _free_free_shape(25.0)
+    x = np.linspace(0, 25.0, 2001)
+    assert psi(0.0) == pytest.approx(1.0) and psi(25.0) == pytest.approx(1.0, abs=1e-6)
+    assert np.trapezoid(psi(x) ** 2, x) / 25.0 == pytest.approx(0.25, rel=1e-3)
+
+
+@pytest.mark.parametrize("fb", [6.0, 10.0])
+def test_flexible_car_body_adds_a_mode_near_its_bending_frequency(fb):
+    cfg = twin_config()
+    vm = flexible_vehicle(vehicle_from_design(cfg.vehicle), fb, 0.02)
+    assert vm.n_dof == 19
+    # undamped free vibration of the vehicle on springs (magnets held): a mode within 15 % of fb,
+    # stiffened only by the air springs
+    w2 = eigh(vm.stiffness, vm.mass, eigvals_only=True)
+    f = np.sqrt(np.clip(w2, 0, None)) / (2 * math.pi)
+    assert np.min(np.abs(f - fb)) / fb < 0.15
+    eq0 = static_equilibrium(vehicle_from_design(cfg.vehicle))
+    eq1 = static_equilibrium(vm)
+    assert np.allclose(eq1.magnet_force_n.sum(), eq0.magnet_force_n.sum())
+
+
+def test_control_lag_keeps_the_levitation_stable_and_moves_the_poles():
+    cfg = twin_config()
+    p0 = build_vehicle(cfg).state_space.poles()
+    p1 = build_vehicle(with_levitation(cfg, coil_inductance_h=0.004)).state_space.poles()
+    assert np.all(p1.real < 0)
+    assert p1.size == p0.size + 8   # one current state per magnet
+
+
+def test_sensor_error_applies_scale_offset_drift():
+    from maglev_ros.discrepancy.model import predict
+    from maglev_ros.discrepancy.recording import recording_from_arrays
+    md = {"schema": "maglev-testline/1", "line": {"spans": [{"id": "S1", "start_m": 0.0, "length_m": L}]},
+          "sensors": {"G1": {"topic": "/testline/guideway/accel", "position_m": L / 2}},
+          "run": {"kind": "ambient"}}
+    t = np.arange(0, 2, 0.002)
+    rec = recording_from_arrays(md, {"G1": (t, np.zeros_like(t))})
+    spec = base_spec(md).with_(sensor_error=(("G1", 2.0, 0.1, 0.05),))
+    y = predict(spec, rec)["G1"]
+    assert np.allclose(y, 0.1 + 0.05 * (t - t[0]))

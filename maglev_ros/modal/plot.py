@@ -37,8 +37,8 @@ def stabilization_figure(result: ModalResult, title: str = "", freq_range_hz=Non
         ax.set_ylim(0, st.order.max() + 2)
     for m in result.modes:
         ax.axvline(m.frequency_hz, color="k", lw=0.8, ls="--", alpha=0.6)
-        ax.text(m.frequency_hz, ax.get_ylim()[1], f" {m.id}\n {m.frequency_hz:.2f} Hz",
-                fontsize=7, va="top")
+        ax.text(m.frequency_hz, ax.get_ylim()[1], f"{m.id} {m.frequency_hz:.2f} Hz ",
+                fontsize=7, va="top", ha="right", rotation=90)
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("model order")
     ax.set_xlim(fmin, fmax)
@@ -52,6 +52,8 @@ def stabilization_figure(result: ModalResult, title: str = "", freq_range_hz=Non
                          label="1st singular value" if k == 0 else None)
         ax2.set_ylabel("singular values of the cross-PSD [unit^2/Hz]")
         ax2.legend(loc="upper right", fontsize=8)
+        ax.set_zorder(ax2.get_zorder() + 1)             # poles drawn over the spectrum
+        ax.patch.set_visible(False)
     ax.legend(loc="upper left", fontsize=8)
     ax.set_title(title or f"stabilization diagram ({result.method}, fs {result.fs_hz:.1f} Hz)")
     fig.tight_layout()

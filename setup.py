@@ -15,6 +15,7 @@ NODES = {
     "echo": "maglev_ros.nodes.echo:main",
     "summary": "maglev_ros.nodes.summary:main",
     "irregularity": "maglev_ros.nodes.irregularity:main",
+    "twin": "maglev_ros.nodes.twin:main",
 }
 
 setup(

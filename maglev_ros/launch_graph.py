@@ -18,7 +18,10 @@ class NodeSpec:
 GRAPHS: dict[str, list[NodeSpec]] = {
     "monitor": [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("irregularity", "maglev_ros.nodes.irregularity"),
+        NodeSpec("irregularity", "maglev_ros.nodes.irregularity", params={"highpass_hz": 0.5}),
+        NodeSpec("twin", "maglev_ros.nodes.twin",
+                 params={"irregularity_psd": "maglev_001", "irregularity_band_m": [1.0, 20.0],
+                         "seed": 0, "dt_max_s": 5e-4}),
     ],
 }
 

@@ -20,7 +20,7 @@ SAMPLE_BAG = Path(__file__).resolve().parents[2] / "bags" / "paper_pass"
 
 def add_arguments(p) -> None:
     p.add_argument("--bag", default=str(SAMPLE_BAG), help="recording (default: bags/paper_pass)")
-    p.add_argument("--rate", type=float, default=20.0, help="replay rate through the graph")
+    p.add_argument("--rate", type=float, default=2.0, help="replay rate through the graph")
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
 
 

@@ -8,8 +8,10 @@ A pole computed at model order ``n`` is *stable* when the nearest pole of the pr
 by agglomerative (average-linkage) hierarchical clustering on the distance
 ``d = |f_a - f_b| / max(f_a, f_b) + w_mac (1 - MAC_ab)`` (Magalhaes et al. 2009, the usual
 automated-OMA choice) and a cluster is a physical mode when it holds poles from at least
-``min_cluster_fraction`` of the computed orders. The mode value is the cluster median; the
-representative pole (for the mode shape) is the member closest to that median.
+``min_cluster_fraction`` of the computed orders. A cluster whose shape repeats (MAC > 0.8) that of
+a better-supported cluster within 15 % in frequency is dropped as a mathematical "shadow" (seen at
+high orders next to close pairs). The mode value is the cluster median; the representative pole
+(for the mode shape) is the member closest to that median.
 
 Hand-written rather than a library: the only maintained automated-OMA peers (koma-python,
 pyOMA2) pull heavy GUI/plotting stacks and are much slower; the clustering itself is scipy's.
@@ -127,6 +129,8 @@ class StabilityCriteria:
     mac_weight: float = 1.0           # weight of (1 - MAC) in the cluster distance
     min_cluster_fraction: float = 0.25  # a mode must be stable in this fraction of the orders
     min_cluster_size: int = 3
+    duplicate_mac: float = 0.8        # shadow clusters: MAC above this with a better-supported
+    duplicate_freq: float = 0.15      # cluster within this relative frequency are dropped
 
 
 def stability_flags(order: np.ndarray, freq: np.ndarray, zeta: np.ndarray,
@@ -216,9 +220,34 @@ def cluster_poles(table_order: np.ndarray, freq: np.ndarray, zeta: np.ndarray,
             std_frequency_hz=float(np.std(freq[mem], ddof=1)) if mem.size > 1 else float("nan"),
             std_damping_ratio=float(np.std(zeta[mem], ddof=1)) if mem.size > 1 else float("nan")))
     clusters.sort(key=lambda c: c.frequency_hz)
+    if shapes is not None and len(clusters) > 1:
+        clusters = _drop_shape_duplicates(clusters, shapes, crit)
     for k, c in enumerate(clusters):
         labels_all[c.members] = k
     return clusters, labels_all
+
+
+def _drop_shape_duplicates(clusters, shapes, crit):
+    """Remove "shadow" clusters: a cluster whose shape has MAC > ``crit.duplicate_mac`` with a
+    cluster within ``crit.duplicate_freq`` (relative) that is stable over more orders is a
+    mathematical duplicate (typically a high-order pole that mixes a close pair), not a mode."""
+    rep = np.array([shapes[c.representative] for c in clusters]).T
+    mm = mac(rep, rep)
+    size = np.array([c.members.size for c in clusters])
+    spread = np.array([c.std_frequency_hz / c.frequency_hz if np.isfinite(c.std_frequency_hz)
+                       else np.inf for c in clusters])
+    f = np.array([c.frequency_hz for c in clusters])
+    drop = set()
+    for a in range(len(clusters)):
+        for b in range(len(clusters)):
+            if a == b or mm[a, b] <= crit.duplicate_mac:
+                continue
+            if abs(f[a] - f[b]) / max(f[a], f[b]) > crit.duplicate_freq:
+                continue
+            # a is dropped if b is the better-supported cluster
+            if (size[b], -spread[b]) > (size[a], -spread[a]):
+                drop.add(a)
+    return [c for k, c in enumerate(clusters) if k not in drop]
 
 
 def poles_from_eigs(mu: np.ndarray, fs_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -255,8 +284,8 @@ def sv_spectrum(data: np.ndarray, fs_hz: float, nperseg: int = 1024, n_sv: int =
     s = np.zeros((nf, l, l), dtype=complex)
     for i0 in range(0, starts.size, 64):
         seg = np.stack([x[s0:s0 + nperseg] for s0 in starts[i0:i0 + 64]]) * win[None, :, None]
-        f = np.fft.rfft(seg, axis=1)
-        s += np.einsum("sfa,sfb->fab", f, f.conj())
+        f = np.fft.rfft(seg, axis=1).transpose(1, 2, 0)          # (F, l, segs)
+        s += np.matmul(f, f.conj().transpose(0, 2, 1))            # batched l x l per line
     s *= 2.0 * scale / max(starts.size, 1)
     sv = np.linalg.svd(s, compute_uv=False)[:, :n_sv]
     return Spectrum(frequency_hz=np.fft.rfftfreq(nperseg, 1.0 / fs_hz), singular_values=sv)

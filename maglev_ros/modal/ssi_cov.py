@@ -191,10 +191,8 @@ def block_hankel(cov: np.ndarray, block_rows: int) -> np.ndarray:
     """H[p, q] = R_{p+q+1}, p, q = 0..i-1, from covariances (2i+1, l, r) -> (l i, r i)."""
     i = block_rows
     _, l, r = cov.shape
-    h = np.empty((l * i, r * i))
-    for p in range(i):
-        h[p * l:(p + 1) * l] = np.concatenate([cov[p + q + 1] for q in range(i)], axis=1)
-    return h
+    idx = np.arange(i)[:, None] + np.arange(i)[None, :] + 1          # (i, i) lag index
+    return cov[idx].transpose(0, 2, 1, 3).reshape(l * i, r * i)
 
 
 def top_svd(h: np.ndarray, k: int, v0: np.ndarray | None = None, n_iter: int = 1):

@@ -25,6 +25,10 @@ the block estimates divided by sqrt(n_blocks) (batch-means / Reynders et al. 200
 ``uncertainty="cluster"`` (used for free decays, where blocks are not exchangeable) the std is the
 spread of the stable poles within the mode's cluster across model orders, a cruder indicator.
 
+Accuracy: on ambient data the scatter of the estimates is close to the asymptotic limit
+``std(f)/f ~ std(zeta) ~ sqrt(zeta / (2 pi f T))`` (T record length; Monte Carlo in the tests), e.g.
+0.09 % for a 1.5 %-damped 23.5 Hz mode in 120 s, so a 0.2 % target is about 2 sigma there.
+
 Hand-written instead of using koma-python / pyOMA2: those build the Hankel matrix from the full
 lagged data matrices and redo an SVD/pseudo-inverse per order, which is far slower (see
 bench/bench_modal.py), and they pull in GUI/plot stacks.

@@ -33,7 +33,7 @@ def test_node_publishes_growing_profile_matching_truth(tmp_path):
     try:
         time.sleep(1.0)
         rep = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag),
-                              "--rate", "10", "--quiet", "--wait-subscribers", "1"],
+                              "--rate", "5", "--quiet", "--wait-subscribers", "1"],
                              env=env, capture_output=True, text=True, timeout=120)
         assert rep.returncode == 0, rep.stderr
         coll.wait(timeout=120)

@@ -42,16 +42,29 @@ def run_node(node_factory, args=None) -> int:
 
     The node may define ``finished`` (bool attribute) to end the spin on its own.
     """
-    rclpy.init(args=args if args is not None else sys.argv)
+    import signal
+
+    from rclpy.signals import SignalHandlerOptions
+
+    # Our own SIGINT/SIGTERM handling: finish the spin loop and shut down in order, instead of
+    # rclpy invalidating the context under a running callback.
+    rclpy.init(args=args if args is not None else sys.argv,
+               signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = None
     code = 0
+    stop = {"now": False}
+
+    def on_signal(signum, frame):
+        stop["now"] = True
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
     try:
         node = node_factory()
         from rclpy.experimental import EventsExecutor
         executor = EventsExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not getattr(node, "finished", False):
+        while rclpy.ok() and not getattr(node, "finished", False) and not stop["now"]:
             executor.spin_once(timeout_sec=0.1)
         code = int(getattr(node, "exit_code", 0))
     except KeyboardInterrupt:

@@ -3,7 +3,7 @@
 Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position}; feeds
 :class:`maglev_ros.irregularity.profile.IncrementalProfiler`; publishes the profile on
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
-profile whenever it joins) every ``publish_period_s`` when it has grown.
+profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 
 Parameters: highpass_hz (0.2), spacing_m (0.25), band_speed_mps (0: 80% of the metadata's
 nominal speed, else 15 km/h), max_profile_m (0: unbounded), publish_period_s (1.0).
@@ -38,7 +38,7 @@ class IrregularityNode(Node):
         self.profiler = None
         self.pending: list[tuple[str, object]] = []
         self.last_stamp_ns = 0
-        self.n_published_points = -1
+        self.published_signature = None
         self.warned: set = set()
         self.pub = self.create_publisher(IrregularityProfile, TOPIC_IRREGULARITY, QOS_LATCHED)
         self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
@@ -91,9 +91,10 @@ class IrregularityNode(Node):
             res = self.profiler.result()
         except UserError:       # not enough of all three topics yet
             return
-        if res.position_m.size == 0 or res.position_m.size == self.n_published_points:
+        signature = (res.position_m.size, int(np.isfinite(res.irregularity_m).sum()))
+        if signature[1] == 0 or signature == self.published_signature:
             return
-        self.n_published_points = res.position_m.size
+        self.published_signature = signature
         msg = IrregularityProfile()
         stamp_to_msg(self.last_stamp_ns, msg.header)
         msg.header.frame_id = "guideway"

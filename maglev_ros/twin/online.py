@@ -246,10 +246,18 @@ class OnlineTwin:
     def set_irregularity_profile(self, start_position_m: float, spacing_m: float, values: Sequence[float]) -> None:
         """From an IrregularityProfile message: samples every ``spacing_m`` from ``start_position_m``."""
         r = np.asarray(values, dtype=float)
-        if r.size < 2 or not spacing_m > 0 or not np.all(np.isfinite(r)):
+        ok = np.isfinite(r)
+        if ok.sum() < 2 or not spacing_m > 0:
             raise UserError(f"irregularity profile: expected >= 2 finite samples and spacing_m > 0, "
-                            f"got {r.size} samples, spacing {spacing_m!r}")
-        self.set_irregularity((float(start_position_m) + float(spacing_m) * np.arange(r.size), r))
+                            f"got {int(ok.sum())} finite of {r.size} samples, spacing {spacing_m!r}")
+        x = float(start_position_m) + float(spacing_m) * np.arange(r.size)
+        # Positions without a valid estimate (edges, dropouts) carry no information: the twin
+        # takes zero there (the expected irregularity), joined linearly to the estimated stretches.
+        idx = np.flatnonzero(ok)
+        r = np.where(ok, r, 0.0)
+        inner = (~ok) & (np.arange(r.size) > idx[0]) & (np.arange(r.size) < idx[-1])
+        r[inner] = np.interp(x[inner], x[ok], r[ok])
+        self.set_irregularity((x, r))
 
     # ---------------------------------------------------------------------------- stepping
     def _new_stepper(self, t0_s: float, position_m: float, speed_mps: float) -> TwinStepper:

@@ -252,14 +252,22 @@ def _highpass_fft(x: np.ndarray, fs_hz: float, fc_hz: float) -> tuple[np.ndarray
 def irregularity_from_signals(time_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.ndarray,
                               position_m: np.ndarray, magnet_offsets_m: Sequence[float], nominal_gap_m: float,
                               detrend_order: int = 3, spacing_m: float | None = None,
-                              modal=None, magnet_force_n: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                              modal=None, magnet_force_n: np.ndarray | None = None,
+                              deflection_m: np.ndarray | None = None,
+                              lowpass_hz: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Simple inertial-reference reconstruction of the irregularity r(x) from one pass.
 
     Rail-underside elevation at magnet k: y_k = (gap_k - g0) + z_k (contract: gap = g0 + y - z_m), z_k
     the double integral of the magnet acceleration (trapezoid rule). With ``modal`` (the
     twin's ``ModalBasis``) and the static magnet forces, the quasi-static girder deflection under the
     vehicle, w_k = sum_j Phi(x_k) Omega^-2 Phi(x_j)^T (-F_j), is subtracted (unloaded profile, so the
-    coupled twin does not count the deflection twice). A polynomial trend of order ``detrend_order`` in time is
+    coupled twin does not count the deflection twice). ``deflection_m`` (n, m), when given instead, is
+    the girder deflection at the magnets (e.g. the twin's prediction, dynamic part included) and is
+    subtracted as it is. ``lowpass_hz``: zero-phase 4th-order Butterworth low-pass of each magnet's
+    rail elevation in time before gridding. The gap sensor's white noise enters the profile as
+    broadband 'irregularity' that the twin's controller (kv d(gap)/dt) turns into magnet acceleration
+    the real magnet never had (the real controller saw the true gap), which biases kp and kv low; the
+    profile is only trusted below the frequency where the irregularity content exceeds that noise. A polynomial trend of order ``detrend_order`` in time is
     removed per magnet (integration drift and offsets; a periodic FFT high-pass was tried and rejected:
     on a record of a few seconds its wrap-around leaves broadband errors). Each magnet's profile is interpolated on a common
     grid (``spacing_m``, default distance per sample) and the magnets covering a grid point are averaged.
@@ -274,7 +282,9 @@ def irregularity_from_signals(time_s: np.ndarray, accel_mps2: np.ndarray, gap_m:
     fs = 1.0 / float(np.median(np.diff(t)))
     x = pos[:, None] + np.asarray(magnet_offsets_m, float)[None, :]
     raw = g - nominal_gap_m
-    if modal is not None and magnet_force_n is not None:
+    if deflection_m is not None:
+        raw = raw - np.asarray(deflection_m, float).reshape(raw.shape)
+    elif modal is not None and magnet_force_n is not None:
         n, m = x.shape
         phi = modal.shapes_at(x.ravel()).reshape(n, m, -1)
         q = -np.einsum("nmj,m->nj", phi, np.asarray(magnet_force_n, float)) / modal.omega_rad_s ** 2
@@ -288,6 +298,9 @@ def irregularity_from_signals(time_s: np.ndarray, accel_mps2: np.ndarray, gap_m:
     tt = (t - t.mean()) / max(np.ptp(t), 1e-9)
     V = np.vander(tt, detrend_order + 1)
     y = y - V @ np.linalg.lstsq(V, y, rcond=None)[0]
+    if lowpass_hz is not None and lowpass_hz < 0.45 * fs:
+        from scipy.signal import butter, sosfiltfilt
+        y = sosfiltfilt(butter(4, float(lowpass_hz), fs=fs, output="sos"), y, axis=0)
     ds = spacing_m or max(float(np.median(np.diff(pos))), 1e-3)
     xg = np.arange(float(x.min()), float(x.max()) + ds, ds)
     prof = np.full((x.shape[1], xg.size), np.nan)

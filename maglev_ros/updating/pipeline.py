@@ -1,24 +1,53 @@
 """Two-layer update from recordings (used by ``maglev-ros update`` and the ``updater`` node).
 
-Evidence builders turn contract data into layer targets; ``public_params`` writes the public
-``maglev-params/1`` JSON.
+Evidence builders turn contract data into layer targets; ``update_from_bags`` runs the whole
+hierarchical update (000 Sec. 4-5); ``public_params`` writes the public ``maglev-params/1`` JSON.
+
+Choices (the paper's text is vague here):
+
+- Modes -> FE modes (``modal_target``): the identified modes of the instrumented span (the span
+  named by most guideway sensors) are matched to the span's nominal FE modes at the sensor
+  positions from the metadata: left/right sensors of one section are averaged into one shape
+  entry; a measured mode is kept when its MPC >= ``min_mpc`` and it matches an FE mode with
+  MAC >= ``min_mac`` within +-40 % in frequency (best MAC wins, each FE mode used once). Without
+  shapes (one section) the nearest frequency is used.
+- Quasi-static deflection (``static_target_from_pass``): the pass's
+  /testline/guideway/displacement channel on the instrumented span, low-passed below the first
+  mode, against the magnets' static forces of the twin's vehicle (``levitation.build_vehicle``,
+  they depend on the vehicle design only, not on the gains) at the measured positions.
+- Irregularity for the magnet layer (``pass_irregularity``): ``irregularity.twin_input.
+  profile_for_twin`` (loaded -> unloaded with the twin's predicted deflection) when that module is
+  installed, else the inertial fallback ``magnet_layer.irregularity_from_signals`` with the
+  quasi-static deflection under the static magnet forces subtracted. Both use the measured,
+  anti-alias-filtered gap and acceleration, so the filter delay appears as a position shift of the
+  profile and the twin driven by it reproduces the measured (delayed) accelerations.
+- The magnet layer compares accelerations at <= ``magnet_fs_hz`` (every k-th measured sample).
 """
 from __future__ import annotations
 
 import math
-from dataclasses import replace
-from typing import Sequence
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
+from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
+                                 TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, Metadata)
 from maglev_ros.errors import UserError
-from maglev_ros.twin.design import TwinConfig, with_guideway
-from maglev_ros.updating.guideway_layer import GuidewayUpdate, ModalTarget, StaticTarget
-from maglev_ros.updating.magnet_layer import MagnetUpdate, PassEvidence, irregularity_from_signals
-from maglev_ros.updating.parameters import UNITS, SYMBOLS
+from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_guideway
+from maglev_ros.updating.guideway_layer import (GuidewayLayer, GuidewayUpdate, ModalTarget, SpanModel,
+                                                StaticTarget, mac)
+from maglev_ros.updating.magnet_layer import (MagnetLayer, MagnetModel, MagnetUpdate, PassEvidence,
+                                              irregularity_from_signals, nrmse)
+from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, SYMBOLS, UNITS
 
 PARAMS_SCHEMA = "maglev-params/1"
+# twin-node parameter names (OnlineTwin.set_parameters dotted design paths)
+TWIN_NAMES = {**{n: f"guideway.{n}" for n in GUIDEWAY_PARAMS}, **{n: f"levitation.{n}" for n in MAGNET_PARAMS},
+              "static_current_a": "levitation.static_current_a"}
 
 
 def _f(x):
@@ -34,7 +63,8 @@ def updated_config(config: TwinConfig, gw: GuidewayUpdate | None, mag: MagnetUpd
     return config
 
 
-def public_params(gw: GuidewayUpdate, mag: MagnetUpdate | None) -> dict:
+def public_params(gw: GuidewayUpdate, mag: MagnetUpdate | None, nrmse_override: dict | None = None) -> dict:
+    """The ``maglev-params/1`` document. ``magnet_accel_nrmse`` is null without a magnet layer."""
     params, combos = {}, []
     for n, v, s, ok in zip(gw.names, gw.values, gw.std, gw.identifiable):
         params[n] = {"value": float(v), "unit": UNITS[n], "std": _f(s), "identifiable": bool(ok)}
@@ -47,6 +77,8 @@ def public_params(gw: GuidewayUpdate, mag: MagnetUpdate | None) -> dict:
                                       "identifiable": False}
         combos += [c.to_dict() for c in mag.identifiability.combinations if c.identifiable]
         out_nrmse = {"nominal": float(mag.nrmse_nominal), "updated": float(mag.nrmse_updated)}
+    if nrmse_override is not None:
+        out_nrmse = {"nominal": float(nrmse_override["nominal"]), "updated": float(nrmse_override["updated"])}
     return {"schema": PARAMS_SCHEMA, "parameters": params, "identifiable_combinations": combos,
             "frequencies_hz": {"measured": list(gw.frequencies_measured_hz), "nominal": list(gw.frequencies_nominal_hz),
                                "updated": list(gw.frequencies_updated_hz)},
@@ -54,6 +86,118 @@ def public_params(gw: GuidewayUpdate, mag: MagnetUpdate | None) -> dict:
             "magnet_accel_nrmse": out_nrmse}
 
 
+# ---------------------------------------------------------------------------------------- modes
+def instrumented_span(md: Metadata, config: TwinConfig, topic: str = TOPIC_GUIDEWAY_ACCEL) -> SpanSpec:
+    """The span carrying most of the vertical guideway sensors of ``topic``."""
+    counts: dict[str, int] = {}
+    for s in md.sensors_on_topic(topic).values():
+        if s.span is not None and s.position_m is not None and s.direction in (None, "vertical"):
+            counts[s.span] = counts.get(s.span, 0) + 1
+    if not counts:
+        raise UserError(f"{md.source}: metadata key sensors: no vertical {topic} sensor with span and position_m "
+                        f"(the guideway layer needs sensor positions)")
+    sid = max(counts, key=counts.get)
+    spans = {s.span_id: s for s in line_spans(md.raw["line"], config)}
+    if sid not in spans:
+        raise UserError(f"{md.source}: metadata key sensors: span {sid!r} is not in line.spans")
+    return spans[sid]
+
+
+@dataclass(frozen=True)
+class MeasuredMode:
+    """A mode as the modal stage reports it (SSI-cov ``Mode`` or a ModalEstimate ``ModalMode``)."""
+    frequency_hz: float
+    std_frequency_hz: float
+    mpc: float
+    mode_shape: Mapping[str, float]
+
+    @classmethod
+    def of(cls, m: Any) -> "MeasuredMode":
+        get = (lambda k, d=None: m.get(k, d)) if isinstance(m, Mapping) else (lambda k, d=None: getattr(m, k, d))
+        shape = get("mode_shape", {})
+        if not isinstance(shape, Mapping):            # ModalMode msg: parallel channels / mode_shape arrays
+            shape = dict(zip(list(get("channels", [])), [float(v) for v in shape]))
+        sf = get("std_frequency_hz", float("nan"))
+        return cls(float(get("frequency_hz")), float("nan") if sf is None else float(sf),
+                   float(get("mpc", 1.0) if get("mpc", 1.0) is not None else 1.0), dict(shape))
+
+
+def modal_target(modes: Sequence[Any], md: Metadata, config: TwinConfig, max_modes: int = 4,
+                 min_mpc: float = 0.7, min_mac: float = 0.6, freq_tol: float = 0.4) -> tuple[SpanSpec, ModalTarget, dict]:
+    """Measured modes -> (instrumented span, ModalTarget, info) (see module docstring)."""
+    span = instrumented_span(md, config)
+    sens = {k: s for k, s in md.sensors_on_topic(TOPIC_GUIDEWAY_ACCEL).items()
+            if s.span == span.span_id and s.position_m is not None and s.direction in (None, "vertical")}
+    mm = [MeasuredMode.of(m) for m in modes]
+    chans = [c for c in sens if all(c in m.mode_shape for m in mm)] if mm else []
+    xs = np.array(sorted({round(sens[c].position_m, 6) for c in chans}))
+    groups = [[c for c in chans if round(sens[c].position_m, 6) == x] for x in xs]
+
+    def shape_of(m):
+        return np.array([np.mean([m.mode_shape[c] for c in g]) for g in groups])
+
+    model = SpanModel(span, n_modes=max_modes + 2)
+    f_fe, s_fe = model.modes([getattr(span.props, n) for n in GUIDEWAY_PARAMS], xs if xs.size else None)
+    use_shapes = xs.size >= 2
+    cand = [i for i, m in enumerate(mm) if m.mpc >= min_mpc and np.isfinite(m.frequency_hz) and m.frequency_hz > 0]
+    chosen: dict[int, tuple[int, float]] = {}
+    for j in range(f_fe.size):
+        best, best_score = None, -np.inf
+        for i in cand:
+            if i in [c[0] for c in chosen.values()]:
+                continue
+            if abs(mm[i].frequency_hz / f_fe[j] - 1) > freq_tol:
+                continue
+            if use_shapes:
+                score = mac(shape_of(mm[i]), s_fe[j])
+                if score < min_mac:
+                    continue
+            else:
+                score = -abs(np.log(mm[i].frequency_hz / f_fe[j]))
+            if score > best_score:
+                best, best_score = i, score
+        if best is not None:
+            chosen[j] = (best, float(best_score))
+        if len(chosen) >= max_modes:
+            break
+    if not chosen:
+        raise UserError(f"{md.source}: no identified mode of span {span.span_id} matches the span's FE modes "
+                        f"(checked {len(mm)} modes; expected MPC >= {min_mpc}, MAC >= {min_mac}, frequency within "
+                        f"+-{100 * freq_tol:.0f} % of {', '.join(f'{f:.1f}' for f in f_fe[:max_modes])} Hz)")
+    order = sorted(chosen, key=lambda j: mm[chosen[j][0]].frequency_hz)
+    sel = [mm[chosen[j][0]] for j in order]
+    tgt = ModalTarget(np.array([m.frequency_hz for m in sel]), np.array([m.std_frequency_hz for m in sel]),
+                      np.array([shape_of(m) for m in sel]) if use_shapes else None, xs if use_shapes else None)
+    info = {"span": span.span_id, "sensor_x_m": xs.tolist(), "channels": [list(g) for g in groups],
+            "matched_fe_modes": [int(j) + 1 for j in order], "n_identified": len(mm)}
+    return span, tgt, info
+
+
+def identify_ambient(path: str | Path, fmax_hz: float | None = None, block_rows: int = 40,
+                     max_order: int = 60) -> tuple[Metadata, Any, dict]:
+    """SSI-cov modes of an ambient bag's /testline/guideway/accel: (metadata, ModalResult, info)."""
+    from maglev_ros.bag_reader import BagReader
+    from maglev_ros.modal.ssi_cov import SSICov
+    path = Path(path)
+    with BagReader(path) as r:
+        md = r.metadata
+        if md is None:
+            raise UserError(f"{path}: no /testline/metadata; the updater needs sensor positions and the design")
+        if md.run_kind != "ambient":
+            raise UserError(f"{path}: metadata run.kind is {md.run_kind!r}; --ambient expects an ambient recording")
+        if TOPIC_GUIDEWAY_ACCEL not in r.topics:
+            raise UserError(f"{path}: topic {TOPIC_GUIDEWAY_ACCEL} not in bag (topics: {', '.join(sorted(r.topics)) or 'none'})")
+        cd = r.read_topic(TOPIC_GUIDEWAY_ACCEL)
+    fs = float(cd.sample_rate_hz)
+    fmax = min(0.4 * fs, 250.0) if fmax_hz is None else float(fmax_hz)
+    est = SSICov(block_rows=block_rows, orders=range(2, max_order + 1, 2),
+                 decimate_to_hz=3.3 * fmax if fs > 4.0 * fmax else None, freq_range_hz=(1.0, fmax))
+    res = est.fit(np.asarray(cd.data, float), fs, cd.channels)
+    return md, res, {"bag": str(path), "fs_hz": fs, "fmax_hz": fmax, "duration_s": float(cd.time_s[-1] - cd.time_s[0]),
+                     "channels": list(cd.channels)}
+
+
+# ---------------------------------------------------------------------------------------- passes
 def static_target(disp_time_s, disp_m, pos_time_s, position_m, magnet_offsets_m, magnet_force_n, sensor_x_m,
                   lowpass_hz: float = 5.0) -> StaticTarget:
     """Quasi-static deflection evidence: the displacement low-passed (zero-phase Butterworth, 4th order)
@@ -67,25 +211,252 @@ def static_target(disp_time_s, disp_m, pos_time_s, position_m, magnet_offsets_m,
     return StaticTarget(float(sensor_x_m), X[::step], np.asarray(magnet_force_n, float), d[::step])
 
 
-def pass_evidence(accel_time_s, accel_mps2, gap_time_s, gap_m, pos_time_s, position_m, speed_mps,
-                  magnet_offsets_m, nominal_gap_m, magnets: Sequence[int], t_start_s: float | None = None,
-                  window_s: float | None = None, modal=None, magnet_force_n=None, label: str = "") -> PassEvidence:
-    """PassEvidence from measured channels (magnets 1-based, accel/gap columns in that order)."""
-    t = np.asarray(accel_time_s, float)
-    a = np.atleast_2d(np.asarray(accel_mps2, float))
-    g = np.stack([np.interp(t, gap_time_s, col) for col in np.atleast_2d(np.asarray(gap_m, float)).T], axis=1)
-    pos = np.interp(t, pos_time_s, position_m)
-    spd = np.interp(t, pos_time_s, speed_mps)
-    offs = [magnet_offsets_m[m - 1] for m in magnets]
-    xg, rg = irregularity_from_signals(t, a, g, pos, offs, nominal_gap_m, modal=modal,
-                                       magnet_force_n=None if magnet_force_n is None else np.asarray(magnet_force_n)[[m - 1 for m in magnets]])
-    t0 = t[0] if t_start_s is None else float(t_start_s)
-    sel = t >= t0
-    if window_s is not None:
-        sel &= t <= t0 + window_s
-    if sel.sum() < 20:
-        raise UserError(f"pass {label}: fewer than 20 magnet acceleration samples in the selected window")
-    ts, dt = t[sel], float(np.median(np.diff(t)))
+def static_magnet_forces(config: TwinConfig) -> np.ndarray:
+    from maglev_ros.twin.levitation import build_vehicle
+    return np.asarray(build_vehicle(config).levitation.static_force_n, float)
+
+
+def pass_irregularity(t, accel, gap, position_m, speed_mps, md: Metadata, magnets, config: TwinConfig, line,
+                      use_twin_input: bool = True, deflection_iterations: int = 2,
+                      lowpass_hz: float | None = 60.0) -> tuple[np.ndarray, np.ndarray, str]:
+    """Unloaded irregularity (x, r, method) for the twin from one pass (see module docstring)."""
+    offs_all = md.magnet_offsets_m
+    offs = [offs_all[m - 1] for m in magnets]
+    if use_twin_input:
+        try:
+            from maglev_ros.irregularity import twin_input   # another helper's module, may be absent
+        except ImportError:
+            twin_input = None
+        if twin_input is not None:
+            try:
+                out = twin_input.profile_for_twin(accel, gap, position_m, {"magnet_offsets_m": offs,
+                                                                           "nominal_gap_m": md.nominal_gap_m,
+                                                                           "time_s": t, "speed_mps": speed_mps},
+                                                  config, line)
+                x, r = _xy(out)
+                return x, r, "irregularity.twin_input.profile_for_twin"
+            except Exception:           # interface mismatch: fall back (recorded in the provenance)
+                pass
+    from maglev_ros.twin.guideway import Guideway
+    num = config.numerics
+    modal = Guideway(line_spans(line, config), num.n_elements_per_span).modes(num.mode_cutoff_hz, num.min_modes_per_span)
+    F = static_magnet_forces(config)[[m - 1 for m in magnets]]
+    g0 = md.nominal_gap_m if md.nominal_gap_m is not None else config.levitation.nominal_gap_m
+    x, r = irregularity_from_signals(t, accel, gap, position_m, offs, g0, modal=modal, magnet_force_n=F,
+                                     lowpass_hz=lowpass_hz)
+    for _ in range(max(0, int(deflection_iterations))):
+        w = twin_rail_deflection(config, line, t, position_m, speed_mps, (x, r), magnets)
+        x, r = irregularity_from_signals(t, accel, gap, position_m, offs, g0, deflection_m=w, lowpass_hz=lowpass_hz)
+    return x, r, (f"inertial fallback (magnet_layer.irregularity_from_signals; girder deflection removed: "
+                  f"quasi-static, then {deflection_iterations} twin-predicted iteration(s))")
+
+
+def twin_rail_deflection(config: TwinConfig, line, t, position_m, speed_mps, irregularity, magnets) -> np.ndarray:
+    """Girder deflection (n, len(magnets)) under the measured magnets predicted by the coupled twin
+    driven by ``irregularity`` along the measured position: w = gap - g0 - r(x_k) + z_k."""
+    from maglev_ros.twin.coupling import as_irregularity, simulate_pass
+    t = np.asarray(t, float)
+    fs = 1.0 / float(np.median(np.diff(t)))
+    dt = 1.0 / fs
+    tt = np.concatenate([[0.0], t - t[0] + dt])
+    vv = np.concatenate([[speed_mps[0]], speed_mps])
+    res = simulate_pass(config, line, speed_mps=(tt, vv), irregularity=irregularity,
+                        duration_s=float(tt[-1]) + dt, fs_out_hz=fs,
+                        start_position_m=float(position_m[0] - speed_mps[0] * dt))
+    irr = as_irregularity(irregularity)
+    offs = np.asarray(config.vehicle.magnet_offsets_m, float)
+    out = []
+    for m in magnets:
+        k = m - 1
+        z = res.vehicle_disp_m[:, res.dof_names.index(f"magnet{m}.z")]
+        w = res.magnet_gap_m[:, k] - config.levitation.nominal_gap_m - irr.elevation(res.position_m + offs[k]) + z
+        out.append(np.interp(t - t[0] + dt, res.time_s, w))
+    return np.stack(out, axis=1)
+
+
+def _xy(out):
+    if isinstance(out, tuple) and len(out) >= 2:
+        return np.asarray(out[0], float), np.asarray(out[1], float)
+    for xa, ra in (("position_m", "irregularity_m"), ("x_m", "r_m"), ("x_m", "irregularity_m"), ("position_m", "elevation_m")):
+        if hasattr(out, xa) and hasattr(out, ra):
+            return np.asarray(getattr(out, xa), float), np.asarray(getattr(out, ra), float)
+    raise TypeError("unknown profile_for_twin result")
+
+
+@dataclass(frozen=True)
+class PassRecording:
+    """What a pass bag gives the updater: magnet-layer evidence, optional static target, info."""
+    evidence: PassEvidence
+    static: StaticTarget | None
+    info: dict
+    md: Metadata
+
+
+def read_pass(path: str | Path, config: TwinConfig | None = None, line=None, skip_s: float = 0.3,
+              magnet_fs_hz: float = 500.0, max_window_s: float | None = None,
+              use_twin_input: bool = True) -> PassRecording:
+    """Read a pass bag into magnet-layer evidence (+ the quasi-static deflection target when the bag
+    has /testline/guideway/displacement on the instrumented span). ``config``: the twin config the
+    irregularity reconstruction uses (default: the bag's nominal design)."""
+    from maglev_ros.bag_reader import BagReader
+    path = Path(path)
+    with BagReader(path) as r:
+        md = r.metadata
+        if md is None:
+            raise UserError(f"{path}: no /testline/metadata; the updater needs the magnet offsets and the design")
+        if md.run_kind != "pass":
+            raise UserError(f"{path}: metadata run.kind is {md.run_kind!r}; --pass expects a vehicle pass recording")
+        for tp in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
+            if tp not in r.topics:
+                raise UserError(f"{path}: topic {tp} not in bag; the magnet layer needs magnet accelerations, gaps "
+                                f"and the vehicle position")
+        acc, gap, pos = (r.read_topic(tp) for tp in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
+        disp = r.read_topic(TOPIC_GUIDEWAY_DISP) if TOPIC_GUIDEWAY_DISP in r.topics else None
+    cfg = config if config is not None else twin_config_from_metadata(md.raw)
+    line = md.raw["line"] if line is None else line
+    for ch in ("position_m", "speed_mps"):
+        if ch not in pos.channels:
+            raise UserError(f"{path}: topic {TOPIC_VEHICLE_POSITION}: channel {ch} missing (channels: {', '.join(pos.channels)})")
+    sens = md.sensors
+    mag_a = {sens[c].magnet: i for i, c in enumerate(acc.channels) if c in sens and sens[c].magnet is not None}
+    mag_g = {sens[c].magnet: i for i, c in enumerate(gap.channels) if c in sens and sens[c].magnet is not None}
+    mags = sorted(set(mag_a) & set(mag_g))
+    if not mags:
+        raise UserError(f"{path}: no magnet has both an acceleration ({TOPIC_VEHICLE_ACCEL}) and a gap "
+                        f"({TOPIC_VEHICLE_GAP}) channel with metadata sensors.<id>.magnet")
+    if max(mags) > len(md.magnet_offsets_m):
+        raise UserError(f"{path}: metadata key vehicle.magnet_offsets_m: {len(md.magnet_offsets_m)} offsets but magnet {max(mags)} is recorded")
+    t0 = float(acc.time_s[0])
+    t = acc.time_s - t0
+    a = acc.data[:, [mag_a[m] for m in mags]]
+    g = np.stack([np.interp(acc.time_s, gap.time_s, gap.data[:, mag_g[m]]) for m in mags], axis=1)
+    x_pos = np.interp(acc.time_s, pos.time_s, pos.channel("position_m"))
+    v_pos = np.interp(acc.time_s, pos.time_s, pos.channel("speed_mps"))
+    xr, rr, method = pass_irregularity(t, a, g, x_pos, v_pos, md, mags, cfg, line, use_twin_input)
+    fs = float(acc.sample_rate_hz)
+    k = max(1, int(math.floor(fs / magnet_fs_hz + 1e-9)))
+    sel = np.arange(0, t.size, k)
+    if max_window_s is not None:
+        sel = sel[t[sel] <= float(max_window_s)]
+    dt = 1.0 / fs
+    ts = t[sel]
     rel = ts - ts[0] + dt
-    return PassEvidence(rel, a[sel], tuple(magnets), np.concatenate([[0.0], rel]),
-                        np.concatenate([[spd[sel][0]], spd[sel]]), float(pos[sel][0] - spd[sel][0] * dt), xg, rg, label)
+    ev = PassEvidence(rel, a[sel], tuple(mags), np.concatenate([[0.0], rel]),
+                      np.concatenate([[v_pos[sel][0]], v_pos[sel]]), float(x_pos[sel][0] - v_pos[sel][0] * dt),
+                      xr, rr, path.name)
+    static = None
+    info = {"bag": str(path), "magnets": mags, "fs_hz": fs, "magnet_fs_hz": fs / k, "duration_s": float(ts[-1] - ts[0]),
+            "irregularity": method}
+    if disp is not None:
+        try:
+            span = instrumented_span(md, cfg)
+        except UserError:
+            span = None
+        dch = [c for c in disp.channels if c in sens and sens[c].position_m is not None
+               and span is not None and sens[c].span == span.span_id]
+        if dch:
+            mid = span.start_m + 0.5 * span.length_m
+            c = min(dch, key=lambda c: abs(sens[c].position_m - mid))
+            static = static_target(disp.time_s - t0, disp.channel(c), pos.time_s - t0, pos.channel("position_m"),
+                                   md.magnet_offsets_m, static_magnet_forces(cfg), sens[c].position_m)
+            info["static_displacement_channel"] = c
+    return PassRecording(ev, static, info, md)
+
+
+def magnet_nrmse(config: TwinConfig, line, passes: Sequence[PassEvidence], skip_s: float = 0.3) -> tuple[float, list]:
+    """Pooled NRMSE of the twin's magnet accelerations (config's gains) over passes, and the
+    per-pass (time, measured, predicted) for plots."""
+    meas, pred, series = [], [], []
+    lev = config.levitation
+    for ev in passes:
+        m = MagnetModel(config, line, ev, skip_s)
+        p = m.predict([getattr(lev, n) for n in MAGNET_PARAMS])
+        meas.append(m.measured.ravel())
+        pred.append(p.ravel())
+        series.append((np.asarray(ev.time_s)[m.keep], m.measured, p))
+    return nrmse(np.concatenate(pred), np.concatenate(meas)), series
+
+
+def _merge_static(targets: Sequence[StaticTarget]) -> StaticTarget | None:
+    targets = [s for s in targets if s is not None]
+    if not targets:
+        return None
+    if len({round(s.sensor_x_m, 6) for s in targets}) > 1:
+        targets = targets[:1]
+    return StaticTarget(targets[0].sensor_x_m, np.vstack([s.magnet_x_m for s in targets]),
+                        targets[0].magnet_force_n, np.concatenate([s.displacement_m for s in targets]),
+                        targets[0].std_rel)
+
+
+@dataclass(frozen=True)
+class TwoLayerUpdate:
+    """Result of ``update_from_bags``: both layers, the public document and provenance."""
+    guideway: GuidewayUpdate
+    magnet: MagnetUpdate | None
+    document: dict
+    provenance: dict
+    nominal_config: TwinConfig
+    updated_config: TwinConfig
+    modal_result: Any = None
+    magnet_series: dict = field(default_factory=dict)     # label -> (t, measured, nominal, updated)
+
+    def to_dict(self) -> dict:
+        return self.document
+
+
+def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
+                     guideway_layer: GuidewayLayer | None = None, magnet_layer: MagnetLayer | None = None,
+                     magnet_fs_hz: float = 500.0, max_window_s: float | None = None, max_modes: int = 4,
+                     use_twin_input: bool = True, log=None) -> TwoLayerUpdate:
+    """Ambient bag -> modes -> guideway layer [+ static deflection of the passes] -> magnet layer on
+    the passes (twin with the updated guideway). Returns the public document and the details."""
+    t_start = time.perf_counter()
+    say = log or (lambda s: None)
+    md_a, modal_res, amb_info = identify_ambient(ambient)
+    cfg0 = twin_config_from_metadata(md_a.raw)
+    span, target, tinfo = modal_target(modal_res.modes, md_a, cfg0, max_modes)
+    say(f"ambient: {len(modal_res.modes)} modes identified, {target.n_modes} matched to FE modes of span {span.span_id}")
+    recs = []
+    for p in passes:
+        if Path(p).resolve() == Path(ambient).resolve():
+            raise UserError(f"{p}: the same bag is given as --ambient and --pass")
+        rec = read_pass(p, cfg0, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s, use_twin_input=use_twin_input)
+        if rec.md.vehicle.get("magnet_offsets_m") is None:
+            raise UserError(f"{p}: metadata key vehicle.magnet_offsets_m: missing")
+        recs.append(rec)
+    static = _merge_static([r.static for r in recs])
+    gl = guideway_layer or GuidewayLayer()
+    gw = gl.fit(span, target, static)
+    say(f"guideway layer: {gw.n_model_evaluations} model evaluations, {gw.wall_time_s:.1f} s")
+    cfg_g = updated_config(cfg0 if not recs else twin_config_from_metadata(recs[0].md.raw), gw)
+    mag = None
+    series = {}
+    nrmse_doc = None
+    if recs:
+        line = recs[0].md.raw["line"]
+        # irregularity again with the UPDATED guideway (its deflection is what is removed)
+        recs = [read_pass(p, cfg_g, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s,
+                          use_twin_input=use_twin_input) for p in passes]
+        evs = [r.evidence for r in recs]
+        ml = magnet_layer or MagnetLayer()
+        mag = ml.fit(cfg_g, line, evs)
+        say(f"magnet layer: {mag.n_model_evaluations} coupled simulations, {mag.wall_time_s:.1f} s")
+        cfg_nom = twin_config_from_metadata(recs[0].md.raw)
+        e_nom, s_nom = magnet_nrmse(cfg_nom, line, evs, ml.skip_s)
+        cfg_up = updated_config(cfg_g, None, mag)
+        e_up, s_up = magnet_nrmse(cfg_up, line, evs, ml.skip_s)
+        nrmse_doc = {"nominal": e_nom, "updated": e_up}
+        for ev, a, b in zip(evs, s_nom, s_up):
+            series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))
+    else:
+        cfg_up = cfg_g
+    doc = public_params(gw, mag, nrmse_doc)
+    prov = {"ambient": amb_info | {"modes": tinfo}, "passes": [r.info for r in recs],
+            "guideway": {"n_model_evaluations": gw.n_model_evaluations, "wall_time_s": gw.wall_time_s,
+                         "used_static": gw.used_static, "surrogate_score": gw.surrogate_score},
+            "magnet": None if mag is None else {"n_model_evaluations": mag.n_model_evaluations,
+                                                "wall_time_s": mag.wall_time_s,
+                                                "surrogate_score": mag.surrogate_score,
+                                                "nrmse_fit": {"nominal": mag.nrmse_nominal, "updated": mag.nrmse_updated}},
+            "wall_time_s": time.perf_counter() - t_start}
+    return TwoLayerUpdate(gw, mag, doc, prov, cfg0, cfg_up, modal_res, series)

@@ -1,0 +1,82 @@
+"""``maglev-ros update --ambient BAG --pass BAG [--pass BAG ...] --out params.json [--plot DIR]``.
+
+Hierarchical model updating (paper 000 Sec. 4-5, ``maglev_ros.updating.pipeline.update_from_bags``):
+guideway modes from the ambient recording (SSI-cov) -> guideway layer (E, rho, kb; the passes'
+/testline/guideway/displacement pins the scale of E and rho when present) -> magnet layer (kp, kv,
+ka) from the passes' magnet accelerations with the updated guideway. Writes the public
+``maglev-params/1`` JSON; ``--plot DIR`` writes pareto.png, frequencies.png, magnet_accel.png.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from maglev_ros.errors import UserError
+
+NAME = "update"
+HELP = "update the twin's guideway and magnet parameters from ambient + pass recordings"
+ORDER = 70
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--ambient", required=True, metavar="BAG", help="ambient-vibration recording (guideway modes)")
+    p.add_argument("--pass", dest="passes", action="append", default=[], metavar="BAG",
+                   help="vehicle pass recording (magnet layer; repeatable)")
+    p.add_argument("--out", required=True, metavar="params.json", help="write the maglev-params/1 JSON here")
+    p.add_argument("--plot", metavar="DIR", default=None, help="write Pareto / frequency+MAC / acceleration figures here")
+    p.add_argument("--details", metavar="OUT.json", default=None,
+                   help="also write the full result (Pareto archives, identifiability, provenance)")
+    p.add_argument("--max-modes", type=int, default=4, help="modes used by the guideway layer (default 4)")
+    p.add_argument("--samples", type=int, default=60, help="optimal-LHS samples for the magnet-layer surrogate (default 60)")
+    p.add_argument("--polish-evals", type=int, default=40,
+                   help="max direct coupled simulations of the magnet-layer polish (default 40)")
+    p.add_argument("--max-window-s", type=float, default=None,
+                   help="use at most this many seconds of each pass for the magnet layer (default: all)")
+    p.add_argument("--seed", type=int, default=0, help="seed of sampling and swarms (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def run(args) -> int:
+    from maglev_ros.updating.guideway_layer import GuidewayLayer
+    from maglev_ros.updating.magnet_layer import MagnetLayer
+    from maglev_ros.updating.pipeline import update_from_bags
+
+    for b in [args.ambient, *args.passes]:
+        if not Path(b).exists():
+            raise UserError(f"{b}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
+    if args.max_modes < 1:
+        raise UserError(f"--max-modes: expected >= 1, got {args.max_modes}")
+    if args.samples < 8:
+        raise UserError(f"--samples: expected >= 8, got {args.samples}")
+    log = None if args.quiet else (lambda s: print(s, flush=True))
+    up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
+                          guideway_layer=GuidewayLayer(seed=args.seed),
+                          magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
+                                                   seed=args.seed), log=log)
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise UserError(f"--out: directory {out.parent} does not exist")
+    out.write_text(json.dumps(up.document, indent=1))
+    doc = up.document
+    if log:
+        fm, fn, fu = (doc["frequencies_hz"][k] for k in ("measured", "nominal", "updated"))
+        print(f"{'mode':>4s} {'meas Hz':>9s} {'nominal':>9s} {'updated':>9s}")
+        for i, (a, b, c) in enumerate(zip(fm, fn, fu)):
+            print(f"{i + 1:>4d} {a:9.3f} {b:9.3f} {c:9.3f}")
+        for n, v in doc["parameters"].items():
+            std = "" if v["std"] is None else f" +- {v['std']:.3g}"
+            print(f"{n:>28s} = {v['value']:.5g} {v['unit']}{std}{'' if v['identifiable'] else '  (not identifiable alone)'}")
+        if doc["magnet_accel_nrmse"]:
+            e = doc["magnet_accel_nrmse"]
+            print(f"magnet acceleration NRMSE: nominal {e['nominal']:.3f} -> updated {e['updated']:.3f}")
+        print(f"wrote {out}")
+    if args.details:
+        det = {"document": doc, "guideway": up.guideway.to_dict(),
+               "magnet": None if up.magnet is None else up.magnet.to_dict(), "provenance": up.provenance}
+        Path(args.details).write_text(json.dumps(det, indent=1, default=float))
+    if args.plot:
+        from maglev_ros.updating.plot import save_update_plots
+        for p in save_update_plots(up, args.plot):
+            if log:
+                print(f"wrote {p}")
+    return 0

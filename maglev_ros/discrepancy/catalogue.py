@@ -164,26 +164,28 @@ def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
                       plausible=plaus, describe=desc)
 
 
-def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float], dict]) -> Hypothesis:
+def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, float], dict]) -> Hypothesis:
+    """Parameters: log10 modal-force PSD at 20 Hz [N^2/Hz per unit modal mass] and its slope in f."""
     def apply(sp, p):
-        return sp.with_(ambient_log10_psd=float(p[0]))
+        return sp.with_(ambient_log10_psd=float(p[0]), ambient_slope=float(p[1]))
 
     def plaus(p):
-        r = rms_of(float(p[0]))
+        r = rms_of(float(p[0]), float(p[1]))
         mx = max(r.values()) if r else 0.0
         if mx > 2.0:
             return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
         return True, ""
 
     def desc(p, sp):
-        r = rms_of(float(p[0]))
+        r = rms_of(float(p[0]), float(p[1]))
         mx = max(r.values()) if r else 0.0
         return (f"The guideway vibrates at its own modes even without our vehicle (about {mx * 1e3:.0f} mm/s^2 "
                 f"RMS), before the vehicle enters and after it leaves: vibration from adjacent lines or the "
                 f"ground, which the twin does not include.",
-                {"log10_modal_force_psd": float(p[0]), "ambient_rms_mps2": {k: float(v) for k, v in r.items()}})
-    return Hypothesis("ambient_excitation", "ambient_excitation", ("log10_modal_force_psd",), (-9.0,), (4.0,),
-                      (-2.0,), apply, needs_sim=False,
+                {"log10_modal_force_psd_at_20hz": float(p[0]), "spectral_slope": float(p[1]),
+                 "ambient_rms_mps2": {k: float(v) for k, v in r.items()}})
+    return Hypothesis("ambient_excitation", "ambient_excitation", ("log10_modal_force_psd", "spectral_slope"),
+                      (-9.0, -4.0), (4.0, 4.0), (-2.0, 0.0), apply, needs_sim=False,
                       location={"position_m": None, "span": None, "channels": guideway_channels},
                       plausible=plaus, describe=desc)
 

@@ -119,7 +119,13 @@ class Diagnoser:
             return 0.5 * n_test * math.log(rss_test0 / max(float(r @ r), 1e-300))
         for h in cands:
             try:
-                hf = fit_hypothesis(base, h, rd_train)
+                if h.effect == "ambient_excitation" and rd_amb is not None:
+                    # the ambient recording is direct evidence of vibration without a vehicle
+                    hf = fit_hypothesis(base, h, rd_train + [rd_amb])
+                    r_tr = residual_vector(hf.spec, rd_train)
+                    hf.rss = float(r_tr @ r_tr)
+                else:
+                    hf = fit_hypothesis(base, h, rd_train)
             except Exception as exc:
                 tried.append({"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"})
                 continue
@@ -213,8 +219,10 @@ class Diagnoser:
             rd = rds[0]
             shape = ambient_shape(spec, rd)
 
-            def rms_of(lg, shape=shape):
-                return {n: float(math.sqrt((10 ** lg) * s.sum())) for n, s in shape.items()
+            fc = np.maximum(rd.grid.band_center_hz, 1.0)
+
+            def rms_of(lg, slope, shape=shape, fc=fc):
+                return {n: float(math.sqrt((10 ** lg) * np.sum(s * (fc / 20.0) ** slope))) for n, s in shape.items()
                         if rd.rec.channels[n].group == "guideway_accel"}
             hyps.append(cat.ambient_hypothesis(gw, rms_of))
         from .model import GROUP_UNIT_OF

@@ -86,7 +86,7 @@ _AMB_CACHE: dict = {}
 
 def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
     """Band power per unit modal-force PSD (1 N^2/Hz per mass-normalised mode) at guideway sensors."""
-    key = (spec.with_(sensor_error=(), ambient_log10_psd=None, dropouts=()), id(rd))
+    key = (spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=()), id(rd))
     hit = _AMB_CACHE.get(key)
     if hit is not None and hit[0] is rd:
         return hit[1]
@@ -95,6 +95,15 @@ def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
         _AMB_CACHE.clear()
     _AMB_CACHE[key] = (rd, out)
     return out
+
+
+def ambient_powers(spec: ModelSpec, rd: RecData) -> dict:
+    """Ambient band powers of the guideway channels: 10^level * shape * (f_band / 20 Hz)^slope."""
+    if spec.ambient_log10_psd is None:
+        return {}
+    fc = np.maximum(rd.grid.band_center_hz, 1.0)
+    w = (10.0 ** spec.ambient_log10_psd) * (fc / 20.0) ** spec.ambient_slope
+    return {n: v * w for n, v in ambient_shape(spec, rd).items()}
 
 
 def _ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
@@ -120,7 +129,7 @@ _PT_CACHE: dict = {}
 
 def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict]:
     """Band powers of the physics-only prediction (cached per physics spec and recording)."""
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, dropouts=())
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
     key = (phys, id(rd))
     hit = _PT_CACHE.get(key)
     if hit is not None and hit[0] is rd:
@@ -144,11 +153,11 @@ def model_powers(spec: ModelSpec, rd: RecData) -> dict:
             ch = rd.rec.channels[n]
             pt[n] = band_powers(ch.time_s, pred[n] - reference_value(rd.rec, n), ch.sample_rate_hz, rd.grid)
     out = {}
-    amb = ambient_shape(spec, rd) if spec.ambient_log10_psd is not None else {}
+    amb = ambient_powers(spec, rd)
     for n, ch in rd.rec.channels.items():
         p = pt[n] + rd.noise[n][None, :]
         if n in amb:
-            p = p + (10.0 ** spec.ambient_log10_psd) * amb[n][None, :]
+            p = p + amb[n][None, :]
         out[n] = p
     return out
 

@@ -86,21 +86,52 @@ def screen(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> float:
     """RSS at the trial value with calibrated parameters projected (1 simulation)."""
     if hyp.effect == "sensor_error":
         return fit_sensor(base, hyp, rds).rss
-    sp = hyp.apply(base.spec, np.array(hyp.trial))
-    r, _ = _project(base, residual_vector(sp, rds))
+    trial = np.array(hyp.trial, dtype=float)
+    if hyp.effect == "control_delay":
+        trial[0] = min(trial[0], 0.5 * stable_lag_limit(base.spec))
+    sp = hyp.apply(base.spec, trial)
+    r = _safe_residual(sp, rds)
+    if r is None:
+        return math.inf
+    r, _ = _project(base, r)
     return float(r @ r)
 
 
-def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9) -> HypFit:
+def _safe_residual(spec, rds):
+    """Residual vector; an unstable or failed twin gives None (treated as no fit)."""
+    try:
+        r = residual_vector(spec, rds)
+    except (FloatingPointError, ValueError, np.linalg.LinAlgError, ZeroDivisionError):
+        return None
+    if not np.all(np.isfinite(r)):
+        return None
+    return r
+
+
+def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
+           upper: float | None = None) -> HypFit:
+    """Bounded scalar search over the extension parameter; calibrated parameters projected by one
+    Gauss-Newton step and, when that step is not small, re-simulated at the projected values."""
     cache = {}
 
     def rss(p):
         sp = hyp.apply(base.spec, np.array([p]))
-        r, d = _project(base, residual_vector(sp, rds))
-        cache[p] = (float(r @ r), d)
-        return cache[p][0]
-    lo, hi = hyp.lower[0], hyp.upper[0]
-    res = minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"maxiter": maxiter, "xatol": 1e-3 * (hi - lo)})
+        r = _safe_residual(sp, rds)
+        if r is None:
+            cache[p] = (math.inf, np.zeros_like(base.theta))
+            return 1e30
+        rp, d = _project(base, r)
+        best = (float(rp @ rp), d)
+        if np.max(np.abs(d)) > 0.02:
+            r2 = _safe_residual(sp.with_(cal=tuple(float(x) for x in base.theta + d)), rds)
+            if r2 is not None:
+                best = (float(r2 @ r2), d)
+            else:
+                best = (math.inf, d)
+        cache[p] = best
+        return best[0] if np.isfinite(best[0]) else 1e30
+    lo, hi = hyp.lower[0], (hyp.upper[0] if upper is None else min(upper, hyp.upper[0]))
+    minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"maxiter": maxiter, "xatol": 1e-3 * (hi - lo)})
     p = min(cache, key=lambda q: cache[q][0])
     rs, d = cache[p]
     sp = hyp.apply(base.spec, np.array([p]))
@@ -108,27 +139,57 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9)
     return HypFit(hyp, np.array([p]), d, rs, sp, len(cache))
 
 
+def stable_lag_limit(spec: ModelSpec) -> float:
+    """Largest first-order control lag [s] for which the calibrated levitation stays stable."""
+    from maglev_ros.twin.levitation import build_vehicle
+    last = 0.0
+    for lag in np.geomspace(5e-4, 0.03, 24):
+        try:
+            poles = build_vehicle(spec.with_(control_lag_s=float(lag)).effective_config()).state_space.poles()
+        except Exception:
+            break
+        if np.max(poles.real) >= -1e-3:
+            break
+        last = float(lag)
+    return 0.9 * last
+
+
 def fit_sensor(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
     ch = hyp.location["channels"][0]
     # scale of the offset/drift parameters from the channel's measured spread
-    sig = np.concatenate([rd.rec.channels[ch].values for rd in rds])
+    sig = np.concatenate([rd.rec.channels[ch].values for rd in rds if ch in rd.rec.channels])
     s_off = float(np.std(sig)) or 1.0
     tspan = max(rd.rec.t1_s - rd.rec.t0_s for rd in rds)
+    scale = np.array([1.0, s_off, s_off / tspan])
+    return _fit_cheap(base, hyp, rds, scale, np.zeros(3), ([-2, -50, -50], [2, 50, 50]))
 
+
+def _fit_cheap(base, hyp, rds, scale, z0, bounds) -> HypFit:
     def fun(z):
-        p = np.array([z[0], z[1] * s_off, z[2] * s_off / tspan])
-        return residual_vector(hyp.apply(base.spec, p), rds)
-    res = least_squares(fun, np.zeros(3), diff_step=1e-3, max_nfev=30, bounds=([-2, -50, -50], [2, 50, 50]))
-    p = np.array([res.x[0], res.x[1] * s_off, res.x[2] * s_off / tspan])
+        return residual_vector(hyp.apply(base.spec, z * scale), rds)
+    res = least_squares(fun, z0, diff_step=1e-3, max_nfev=40, bounds=bounds)
+    p = res.x * scale
     sp = hyp.apply(base.spec, p)
     r = residual_vector(sp, rds)
     return HypFit(hyp, p, np.zeros_like(base.theta), float(r @ r), sp, 0)
 
 
+def fit_ambient(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
+    """Level and spectral slope of the ambient modal forcing (no simulation needed): start from the
+    best level on a grid, then least_squares on both."""
+    grid = np.arange(hyp.lower[0], hyp.upper[0] + 1e-9, 0.5)
+    rs = [float(np.sum(residual_vector(hyp.apply(base.spec, np.array([g, 0.0])), rds) ** 2)) for g in grid]
+    z0 = np.array([grid[int(np.argmin(rs))], 0.0])
+    return _fit_cheap(base, hyp, rds, np.ones(2), z0, (list(hyp.lower), list(hyp.upper)))
+
+
 def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
     if hyp.effect == "sensor_error":
         return fit_sensor(base, hyp, rds)
-    return fit_1d(base, hyp, rds)
+    if hyp.effect == "ambient_excitation":
+        return fit_ambient(base, hyp, rds)
+    upper = stable_lag_limit(base.spec) if hyp.effect == "control_delay" else None
+    return fit_1d(base, hyp, rds, upper=upper)
 
 
 def bic(rss: float, n: int, k: int) -> float:

@@ -52,7 +52,8 @@ class ModelSpec:
     carbody_zeta: float = 0.02
     current_limit_a: float | None = None                    # |I - I0| limit (magnet_nonlinearity)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
-    ambient_log10_psd: float | None = None                  # modal force PSD (ambient_excitation)
+    ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
+    ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
     resonator: tuple[float, float, float] | None = None     # discovery: (freq_hz, position_m, mass ratio)
     dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
     dt_max_s: float | None = None
@@ -237,7 +238,7 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     """Run the twin along ``rec``'s vehicle position (None for an ambient recording)."""
     if rec.kind != "pass" or rec.position_time_s is None:
         return None
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, dropouts=())
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
     key = (phys, id(rec), fs_out_hz)
     hit = _CACHE.get(key)
     if hit is not None and hit[0] is rec:

@@ -1,0 +1,85 @@
+"""`maglev-ros diagnose` end to end on contract bags with a concealed sensor fault: JSON schema, the
+fault found on the right channel, the HTML report renders offline in headless Chromium."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+from discrepancy_cases import make_case, write_case_bags  # noqa: E402
+
+from maglev_ros.cli import main  # noqa: E402
+
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if os.path.exists("/usr/bin/chromium") else None)
+CATEGORIES = {"boundary_condition", "control", "magnetic_force", "excitation", "guideway_structure",
+              "vehicle_structure", "suspension", "instrumentation", "other"}
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("diag")
+    case = make_case("cmd", "sensor_error", {"channel": "G2A", "kind": "scale", "value": 1.4}, seed=11,
+                     speeds=(30.0, 36.0), variant={"n_el": 20, "noise_colour": "white"})
+    amb, passes = write_case_bags(case, d / "bags")
+    out = d / "out"
+    argv = ["diagnose", "--ambient", amb, "--out", str(out)]
+    for p in passes:
+        argv += ["--pass", p]
+    assert main(argv) == 0
+    return out
+
+
+def _num(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+
+
+def test_report_json_follows_the_public_schema(run):
+    rep = json.loads((run / "report.json").read_text())
+    assert rep["schema"] == "maglev-diagnosis/1"
+    for k in ("fit_before", "fit_after"):
+        assert _num(rep[k]["nrmse"]) and all(_num(v) for v in rep[k]["per_channel"].values())
+    for m in rep["mismatches"]:
+        assert set(m) == {"channels", "time_s", "position_m", "frequency_hz", "severity"}
+        assert len(m["time_s"]) == 2 and (m["position_m"] is None or len(m["position_m"]) == 2)
+    for m in rep["missing_physics"]:
+        assert {"effect", "category", "explanation", "location", "frequency_hz", "parameters", "evidence"} <= set(m)
+        assert m["category"] in CATEGORIES
+        assert set(m["evidence"]) == {"heldout_nrmse_before", "heldout_nrmse_after", "delta_bic"}
+        assert set(m["location"]) == {"position_m", "span", "channels"}
+    for r in rep["rejected"]:
+        assert set(r) == {"effect", "why"} and r["why"]
+    assert all(_num(v) for v in rep["updated_parameters"].values())
+
+
+def test_concealed_scale_error_is_found_on_its_channel(run):
+    rep = json.loads((run / "report.json").read_text())
+    mp = rep["missing_physics"]
+    assert mp and mp[0]["effect"] == "sensor_error" and mp[0]["location"]["channels"] == ["G2A"]
+    assert mp[0]["parameters"]["scale"] == pytest.approx(1.4, rel=0.15)
+    ev = mp[0]["evidence"]
+    assert ev["heldout_nrmse_after"] < 0.8 * ev["heldout_nrmse_before"]
+    assert rep["fit_after"]["per_channel"]["G2A"] < 0.5 * rep["fit_before"]["per_channel"]["G2A"]
+
+
+def test_bad_input_is_one_line_error(tmp_path, capsys):
+    assert main(["diagnose", "--pass", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope" in err[0]
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium not installed (Debian package: chromium)")
+def test_html_report_renders_offline_in_headless_chromium(run, tmp_path):
+    html = (run / "report.html").read_text()
+    assert "http://" not in html and "https://" not in html and "<script" not in html
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", "--no-first-run", f"--user-data-dir={tmp_path}",
+           "--dump-dom", (run / "report.html").as_uri()]
+    dom = subprocess.run(cmd, capture_output=True, text=True, timeout=90).stdout
+    for sec in ("summary", "where", "tried", "chosen", "before-after"):
+        assert f'id="{sec}"' in dom
+    assert dom.count("data:image/png;base64,") >= 4

@@ -1,0 +1,412 @@
+"""Unloaded guideway irregularity for the twin, reconstructed from one pass (inertial reference).
+
+``profile_for_twin`` turns a pass's magnet accelerations, gaps and position into the rail
+irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces that pass:
+
+1. **Loaded profile.** The inertial reference method (:class:`.profile.InertialProfiler`) gives
+   y_k = z_m,k + (g_k - g0) = r + w_k at every magnet k: the irregularity PLUS the girder
+   deflection w_k under the loaded guideway at that magnet and time.
+2. **Loaded -> unloaded iteration.** The twin adds its own deflection, so feeding it y would count
+   the deflection twice. The twin is therefore driven along the measured positions with the
+   current profile r_i; its girder deflection under each magnet, w_k(t) = g_k - g0 + z_m,k - r_i
+   (the twin's own gap identity), is handed to the profiler as ``deflection`` (subtracted from the
+   gap change before the shared high-pass), giving r_(i+1). Start: r_0 = loaded profile. The
+   deflection depends on r only through the dynamic magnet forces, so this fixed point converges
+   in 2-3 passes; it stops when the RMS change of the profile falls below ``tol`` of its RMS.
+3. **Band for the twin.** The twin's magnets are point forces: the magnet accelerations come
+   from the SHORT waves (at 25 km/h a 0.5 m wave is 14 Hz). So ``magnet_length_m`` is 0 here and
+   the shortest wavelength is set by sampling and grid only:
+   ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)`` (default spacing 0.02 m; override
+   with ``min_wavelength_m``). Because the reconstruction uses the same point-sensor convention
+   as the twin, the result is the *effective* irregularity the twin needs, not a claim about the
+   rail geometry below a real magnet's length (use :class:`InertialProfiler` with its default
+   ``magnet_length_m`` for geometry). The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
+   from the time high-pass (default ``highpass_hz`` 0.8 Hz: the double-integrated noise of a
+   0.02 m/s^2 accelerometer stays below ~10 um there; waves that long are followed by the
+   levitation control and barely accelerate the magnets -- the twin sees them as absent).
+   The result states the band; outside it the profile is zero and ``valid`` is False.
+4. **Magnets.** Every magnet's profile is high-passed in time by the one shared filter (gap part
+   and acceleration part together, :func:`.integration.double_integrate` ``plus_highpassed``),
+   band-passed in space, then averaged; with the deflection removed the magnets agree to the
+   noise level, so the average leaves no steps where the set of covering magnets changes.
+5. **Sensor latency.** ``sensor_delay_s`` is the (known) delay of the accelerometer and gap
+   channels relative to the position channel, e.g. the group delay of the acquisition
+   system's anti-alias filter. It is removed from the position mapping (the profile sits at its
+   true positions); :func:`simulate_recorded_pass` delays the twin's output by the same amount so
+   prediction and recording line up. With 0 the profile is shifted by speed x delay (harmless for
+   the twin, wrong for geometry).
+
+Outside the valid stretch the twin input is zero, reached by a half-cosine taper of ``taper_m``
+inside the valid stretch. :func:`accel_nrmse` compares measured and predicted magnet
+accelerations only while every magnet of the vehicle is over the valid stretch (past the tapers)
+and at least one is on the line, in a stated band (see its docstring).
+
+Why by hand: the loop couples our own profiler and twin; no library does either.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+from types import SimpleNamespace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy import signal
+
+from maglev_ros.errors import UserError
+from maglev_ros.irregularity.integration import DataWarning
+from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
+
+__all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
+           "twin_deflection"]
+
+
+@dataclass(frozen=True, eq=False)
+class TwinIrregularity:
+    """Unloaded irregularity ready for the twin (``as_twin_input()`` -> (x, r) for
+    ``coupling.simulate_pass`` / ``TwinStepper``)."""
+    position_m: np.ndarray                 # regular grid
+    irregularity_m: np.ndarray             # unloaded, band-limited; 0 outside ``valid``
+    valid: np.ndarray                      # bool: inside the measured stretch (before tapering)
+    min_wavelength_m: float
+    max_wavelength_m: float
+    highpass_hz: float
+    band_speed_mps: float
+    spacing_m: float
+    filter_order: int
+    sensor_delay_s: float
+    taper_m: float
+    iterations: int                        # twin runs used for the deflection
+    converged: bool
+    change_history: tuple[float, ...]      # RMS(r_(i+1) - r_i) / RMS(r_(i+1)) per iteration
+    deflection_rms_m: float                # RMS of the twin's girder deflection removed (valid part)
+    loaded_minus_unloaded_rms_m: float
+    result: IrregularityResult             # the last (unloaded) profiler result
+    warnings: tuple[DataWarning, ...] = field(default_factory=tuple)
+
+    def as_twin_input(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.position_m, self.irregularity_m
+
+    @property
+    def valid_range_m(self) -> tuple[float, float]:
+        x = self.position_m[self.valid]
+        return float(x.min()), float(x.max())
+
+    def band(self) -> dict:
+        return {"min_wavelength_m": self.min_wavelength_m, "max_wavelength_m": self.max_wavelength_m,
+                "highpass_hz": self.highpass_hz, "band_speed_mps": self.band_speed_mps,
+                "filter": self.result.band_filter(),
+                "note": "point-magnet (twin) band: shortest wavelength from sampling/grid, no magnet "
+                        "length; outside the band and outside the valid stretch the profile is 0"}
+
+    def to_dict(self, include_profile: bool = False) -> dict:
+        lo, hi = self.valid_range_m
+        d = {"kind": "unloaded", "spacing_m": self.spacing_m, "band": self.band(),
+             "valid_from_m": lo, "valid_to_m": hi, "taper_m": self.taper_m,
+             "sensor_delay_s": self.sensor_delay_s,
+             "iterations": self.iterations, "converged": self.converged,
+             "change_history": [float(c) for c in self.change_history],
+             "deflection_rms_m": self.deflection_rms_m,
+             "loaded_minus_unloaded_rms_m": self.loaded_minus_unloaded_rms_m,
+             "rms_m": float(np.sqrt(np.mean(self.irregularity_m[self.valid] ** 2))),
+             "agreement": [{"a": a, "b": b, "correlation": c if math.isfinite(c) else None}
+                           for a, b, c in self.result.agreement],
+             "warnings": [w.to_dict() for w in self.warnings]}
+        if include_profile:
+            d["position_m"] = self.position_m.tolist()
+            d["irregularity_m"] = self.irregularity_m.tolist()
+            d["valid"] = self.valid.astype(int).tolist()
+        return d
+
+
+# ----------------------------------------------------------------------------------------------
+def _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs):
+    """(offsets, g0, channel_pairs) from a contract Metadata, a metadata dict or plain offsets."""
+    md = metadata_or_offsets
+    if isinstance(md, Mapping):
+        from maglev_ros.contract import metadata_from_dict
+        md = metadata_from_dict(dict(md), "<metadata>")
+    if hasattr(md, "magnet_offsets_m") and hasattr(md, "sensors"):
+        offs = tuple(md.magnet_offsets_m)
+        if not offs:
+            raise UserError("metadata vehicle.magnet_offsets_m: missing or empty (needed to place the magnets)")
+        g0 = md.nominal_gap_m if nominal_gap_m is None else nominal_gap_m
+        if channel_pairs is None:
+            channel_pairs = magnet_channel_pairs(md, tuple(accel.channels), tuple(gap.channels))
+    else:
+        try:
+            offs = tuple(float(o) for o in md)
+        except TypeError:
+            raise UserError("metadata_or_offsets: expected contract metadata or a list of magnet "
+                            f"offsets in m, got {type(md).__name__}") from None
+        g0 = nominal_gap_m
+    return offs, (0.010 if g0 is None else float(g0)), channel_pairs
+
+
+def _cd(time_s, data, channels, fs=None):
+    return SimpleNamespace(time_s=np.asarray(time_s, float), data=np.asarray(data, float),
+                           channels=tuple(channels), sample_rate_hz=fs)
+
+
+def _position_arrays(position):
+    chans = tuple(position.channels)
+    for c in ("position_m", "speed_mps"):
+        if c not in chans:
+            raise UserError(f"/testline/vehicle/position: channel '{c}' not found (channels: {', '.join(chans)})")
+    d = np.asarray(position.data, float)
+    t = np.asarray(position.time_s, float)
+    p, v = d[:, chans.index("position_m")], d[:, chans.index("speed_mps")]
+    ok = np.isfinite(t) & np.isfinite(p) & np.isfinite(v)
+    if ok.sum() < 2:
+        raise UserError("/testline/vehicle/position: fewer than 2 finite samples")
+    return t[ok], p[ok], v[ok]
+
+
+def _position_at(t, tp, pos, spd) -> np.ndarray:
+    """Measured position at times t: linear inside the record, extrapolated with the end speeds."""
+    t = np.asarray(t, float)
+    x = np.interp(t, tp, pos)
+    return x + np.where(t < tp[0], (t - tp[0]) * spd[0], 0.0) \
+        + np.where(t > tp[-1], (t - tp[-1]) * spd[-1], 0.0)
+
+
+def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
+                           sensor_delay_s: float = 0.0, method: str = "newmark",
+                           dt_max_s: float | None = None, sensors: Any = None,
+                           block_s: float = 0.1):
+    """Drive the twin along a recording's position channel; outputs on ``time_s`` (the recorded
+    accel sample times, evenly spaced).
+
+    The twin starts in static equilibrium one sample before ``time_s[0] - sensor_delay_s`` at the
+    measured position and advances in ``block_s`` steps with the measured speed (linear ramps in
+    between); its outputs are labelled ``t + sensor_delay_s`` so they line up with the delayed
+    recorded channels. Returns the ``PassResult`` (its ``position_m`` is the twin's reference
+    position at the un-delayed instant) and the maximal |twin position - measured position|.
+    """
+    from maglev_ros.twin.coupling import PassResult, TwinStepper
+    t = np.asarray(time_s, float)
+    if t.size < 2:
+        raise UserError("vehicle accel: fewer than 2 samples to predict")
+    fs = 1.0 / float(np.median(np.diff(t)))
+    tp, pos, spd = _position_arrays(position)
+    tau = float(sensor_delay_s)
+    t_start = t[0] - tau - 1.0 / fs
+    t_end = t[-1] - tau
+    st = TwinStepper(config, line, sensors=sensors, irregularity=irregularity, fs_out_hz=fs,
+                     start_position_m=float(_position_at(t_start, tp, pos, spd)),
+                     start_speed_mps=float(np.interp(t_start, tp, spd)), t0_s=t_start,
+                     method=method, dt_max_s=dt_max_s, init="rest")
+    st._init_static()
+    parts = []
+    tc = t_start
+    while tc < t_end - 0.5 / fs:
+        tn = min(t_end + 0.5 / fs, tc + block_s)
+        parts.append(st.advance(tn, float(np.interp(tn, tp, spd))))
+        tc = tn
+    res = PassResult.concat(parts)
+    drift = float(np.max(np.abs(res.position_m - _position_at(res.time_s, tp, pos, spd)))) \
+        if res.n_samples else 0.0
+    from dataclasses import replace
+    res = replace(res, time_s=res.time_s + tau)
+    return res, drift, st
+
+
+def twin_deflection(res, stepper, irregularity) -> np.ndarray:
+    """Girder deflection under every magnet of a twin run, (n, n_magnets), up positive:
+    w = gap - g0 + z_m - r(x) (the twin's gap identity, gap = g0 + r + w - z_m)."""
+    from maglev_ros.twin.coupling import as_irregularity
+    irr = as_irregularity(irregularity)
+    Bm = stepper.vehicle.model.magnet_input
+    zm = res.vehicle_disp_m @ Bm
+    X = res.position_m[:, None] + stepper.magnet_offsets_m[None, :]
+    r = irr.elevation(X.ravel()).reshape(X.shape)
+    g0 = float(stepper.vehicle.levitation.nominal_gap_m)
+    return res.magnet_gap_m - g0 + zm - r
+
+
+def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
+    """Grid, zero-filled tapered profile and valid mask from a profiler result."""
+    dx = res.spacing_m
+    ok = res.valid
+    if not ok.any():
+        raise UserError("vehicle recording: no valid irregularity left for the twin")
+    npad = int(math.ceil(pad_m / dx))
+    j0 = int(round(res.position_m[0] / dx)) - npad
+    n = res.position_m.size + 2 * npad
+    x = (j0 + np.arange(n)) * dx
+    r = np.zeros(n)
+    valid = np.zeros(n, bool)
+    valid[npad:npad + ok.size] = ok
+    r[npad:npad + ok.size] = np.where(ok, res.irregularity_m, 0.0)
+    nt = int(round(taper_m / dx))
+    if nt > 1:
+        m = np.concatenate([[False], valid, [False]])
+        d = np.diff(m.astype(np.int8))
+        for i0, i1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+            k = min(nt, (i1 - i0) // 2)
+            if k > 1:
+                ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
+                r[i0:i0 + k] *= ramp
+                r[i1 - k:i1] *= ramp[::-1]
+    return x, r, valid
+
+
+def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=None, *,
+                     highpass_hz: float = 0.8, spacing_m: float = 0.02,
+                     min_wavelength_m: float | None = None, max_wavelength_m: float | None = None,
+                     band_speed_mps: float | None = None, magnets: Sequence[int] | None = None,
+                     channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
+                     sensor_delay_s: float = 0.0, max_iterations: int = 4, tol: float = 0.01,
+                     taper_m: float = 1.0, edge_s: float | None = None, method: str = "newmark",
+                     dt_max_s: float | None = None, **profiler_kwargs) -> TwinIrregularity:
+    """Unloaded irregularity of one pass, ready to drive the twin (see module docstring).
+
+    ``accel``, ``gap``, ``position``: ChannelData-like (time_s, data, channels[, sample_rate_hz])
+    of /testline/vehicle/accel, /gap and /position. ``metadata_or_offsets``: the recording's
+    contract ``Metadata`` (or its dict; magnet offsets, nominal gap and the magnet channel pairs
+    come from it) or a plain list of magnet offsets [m]. ``config``/``line``: the twin
+    (``TwinConfig`` and the metadata ``line`` block / spans) whose deflection is removed.
+    ``max_iterations``: twin runs at most (0 returns the loaded profile, tagged as such in the
+    warnings). Extra keyword arguments go to :class:`InertialProfiler`.
+    """
+    offs, g0, pairs = _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs)
+    if not highpass_hz > 0:
+        raise UserError(f"highpass_hz: expected > 0 Hz, got {highpass_hz}")
+    if not (max_iterations >= 0):
+        raise UserError(f"max_iterations: expected >= 0, got {max_iterations}")
+    tau = float(sensor_delay_s)
+    pos_sh = _cd(np.asarray(position.time_s, float) + tau, position.data, position.channels,
+                 getattr(position, "sample_rate_hz", None))
+    prof = InertialProfiler(highpass_hz=highpass_hz, spacing_m=spacing_m, magnets=magnets,
+                            magnet_length_m=0.0, min_wavelength_m=min_wavelength_m,
+                            max_wavelength_m=max_wavelength_m, band_speed_mps=band_speed_mps,
+                            edge_s=(1.5 / highpass_hz) if edge_s is None else edge_s,
+                            **profiler_kwargs)
+    fit_kw = dict(magnet_offsets_m=offs, nominal_gap_m=g0, channel_pairs=pairs)
+    loaded = prof.fit(accel, gap, pos_sh, **fit_kw)
+    # pad: the twin input must cover every magnet of the vehicle, sensored or not
+    pad = float(np.ptp(np.asarray(config.vehicle.magnet_offsets_m, float))) + 5.0
+    x, r, valid = _twin_profile(loaded, taper_m, pad)
+    t_acc = np.asarray(accel.time_s, float)
+    cur = loaded
+    history: list[float] = []
+    converged = max_iterations == 0
+    defl_rms = 0.0
+    warns = list(loaded.warnings)
+    it = 0
+    for it in range(1, int(max_iterations) + 1):
+        res, drift, st = simulate_recorded_pass(config, line, position, (x, r), t_acc,
+                                                sensor_delay_s=tau, method=method, dt_max_s=dt_max_s)
+        w = twin_deflection(res, st, (x, r))
+        tw = res.time_s
+
+        def defl(t, _x, magnet, _tw=tw, _w=w):
+            return np.interp(t, _tw, _w[:, magnet - 1])
+
+        cur = prof.fit(accel, gap, pos_sh, deflection=defl, **fit_kw)
+        x2, r2, valid2 = _twin_profile(cur, taper_m, pad)
+        both = np.interp(x, x2, r2, left=np.nan, right=np.nan)
+        m = valid & np.isfinite(both)
+        rms_new = float(np.sqrt(np.mean(both[m] ** 2))) if m.any() else 0.0
+        change = float(np.sqrt(np.mean((both[m] - r[m]) ** 2)) / rms_new) if rms_new > 0 else 0.0
+        history.append(change)
+        xs = res.position_m[:, None] + st.magnet_offsets_m[None, :]
+        inside = (xs >= x2[valid2].min()) & (xs <= x2[valid2].max())
+        defl_rms = float(np.sqrt(np.mean((w - w.mean())[inside] ** 2))) if inside.any() else 0.0
+        x, r, valid = x2, r2, valid2
+        if drift > 0.05:
+            warns.append(DataWarning("position_drift", "/testline/vehicle/position",
+                                     f"twin position drifted {drift:.3g} m from the measured one "
+                                     "(speed channel inconsistent with position)", value=drift))
+        if change < tol:
+            converged = True
+            break
+    if max_iterations == 0:
+        warns.append(DataWarning("band", "", "max_iterations=0: loaded profile (girder deflection "
+                                 "under the vehicle not removed)"))
+    elif not converged:
+        warns.append(DataWarning("not_converged", "", f"loaded->unloaded iteration still changed "
+                                 f"the profile by {history[-1]:.3g} of its RMS after {it} twin runs"))
+    lu = np.interp(cur.position_m, loaded.position_m, loaded.irregularity_m)
+    m = cur.valid & np.isfinite(lu)
+    lmu = float(np.sqrt(np.mean((lu[m] - cur.irregularity_m[m]) ** 2))) if m.any() else 0.0
+    seen, uniq = set(), []
+    for wn in warns + list(cur.warnings):
+        key = (wn.kind, wn.channel, wn.message)
+        if key not in seen:
+            seen.add(key)
+            uniq.append(wn)
+    return TwinIrregularity(
+        position_m=x, irregularity_m=r, valid=valid, min_wavelength_m=cur.min_wavelength_m,
+        max_wavelength_m=cur.max_wavelength_m, highpass_hz=cur.highpass_hz,
+        band_speed_mps=cur.band_speed_mps, spacing_m=cur.spacing_m, filter_order=cur.filter_order,
+        sensor_delay_s=tau, taper_m=float(taper_m), iterations=it if max_iterations else 0,
+        converged=converged, change_history=tuple(history), deflection_rms_m=defl_rms,
+        loaded_minus_unloaded_rms_m=lmu, result=cur, warnings=tuple(uniq))
+
+
+# ----------------------------------------------------------------------------------------------
+def accel_nrmse(accel, prediction, twin_irregularity: TwinIrregularity, config, line=None, *,
+                channel_pairs: dict | None = None, magnets: Sequence[int] | None = None,
+                band_hz: tuple[float, float] | None = None, margin_m: float = 1.0) -> dict:
+    """NRMSE = rms(measured - predicted) / rms(measured) of the magnet accelerations.
+
+    ``prediction``: the ``PassResult`` of :func:`simulate_recorded_pass` on the accel sample times.
+    Compared: the channels of ``channel_pairs`` (magnet -> (accel, gap) channel; default: accel
+    channel k is magnet k), only while (a) every magnet of the vehicle is over the valid stretch of
+    ``twin_irregularity`` at least ``taper_m + margin_m`` from its ends and (b) at least one magnet
+    is on a span of the line. Both signals are band-passed by the same zero-phase Butterworth
+    (order 4, forward-backward) from ``highpass_hz`` of the profile to v_max / min_wavelength
+    (capped at 0.45 fs): the band the twin input carries; ``band_hz`` overrides it.
+    Returns {"nrmse", "per_channel", "band_hz", "window_s", "n_samples"}.
+    """
+    from maglev_ros.twin.design import line_spans
+    t = np.asarray(accel.time_s, float)
+    fs = 1.0 / float(np.median(np.diff(t)))
+    chans = tuple(accel.channels)
+    data = np.asarray(accel.data, float)
+    if channel_pairs is None:
+        channel_pairs = {k + 1: (c, None) for k, c in enumerate(chans)}
+    mags = sorted(m for m in channel_pairs if magnets is None or m in magnets)
+    if prediction.n_samples != t.size:
+        pt = np.asarray(prediction.time_s, float)
+        pred_all = np.column_stack([np.interp(t, pt, prediction.magnet_accel_mps2[:, k])
+                                    for k in range(prediction.magnet_accel_mps2.shape[1])])
+        xref = np.interp(t, pt, prediction.position_m)
+    else:
+        pred_all = prediction.magnet_accel_mps2
+        xref = prediction.position_m
+    offs = np.asarray(config.vehicle.magnet_offsets_m, float)
+    X = xref[:, None] + offs[None, :]
+    lo, hi = twin_irregularity.valid_range_m
+    mg = twin_irregularity.taper_m + margin_m
+    over = (X.min(axis=1) >= lo + mg) & (X.max(axis=1) <= hi - mg)
+    spans = line_spans(line, config)
+    on = np.zeros(t.size, bool)
+    for s in spans:
+        on |= np.any((X >= s.start_m) & (X <= s.end_m), axis=1)
+    win = over & on
+    if win.sum() < 16:
+        raise UserError("magnet accel comparison: no time with the whole vehicle over the valid "
+                        "profile and on the line")
+    if band_hz is None:
+        v_max = float(np.max(np.abs(np.gradient(xref, t))[win]))
+        f_hi = min(0.45 * fs, v_max / twin_irregularity.min_wavelength_m)
+        band_hz = (twin_irregularity.highpass_hz, f_hi)
+    sos = signal.butter(4, list(band_hz), btype="band", fs=fs, output="sos")
+    meas, pred = [], []
+    for m in mags:
+        ca = channel_pairs[m][0]
+        if ca not in chans:
+            raise UserError(f"/testline/vehicle/accel: channel '{ca}' not found")
+        a = data[:, chans.index(ca)]
+        p = pred_all[:, m - 1]
+        meas.append(signal.sosfiltfilt(sos, a - np.mean(a))[win])
+        pred.append(signal.sosfiltfilt(sos, p - np.mean(p))[win])
+    M, Pm = np.column_stack(meas), np.column_stack(pred)
+    per = {f"M{m}": float(np.sqrt(np.mean((M[:, i] - Pm[:, i]) ** 2)) / np.sqrt(np.mean(M[:, i] ** 2)))
+           for i, m in enumerate(mags)}
+    tot = float(np.sqrt(np.mean((M - Pm) ** 2)) / np.sqrt(np.mean(M ** 2)))
+    return {"nrmse": tot, "per_channel": per, "band_hz": [float(band_hz[0]), float(band_hz[1])],
+            "filter": "butterworth order 4 band-pass, zero-phase (sosfiltfilt), on both signals",
+            "window_s": float(win.sum() / fs), "n_samples": int(win.sum())}

@@ -256,13 +256,18 @@ def _integrate_impl(system, n_steps, nm, n_cols, excitation, det_weight, sink) -
     mats = system.matrices_at(0.0, x0)
     outs = system.outputs_at(0.0, x0)
     _check_shapes(system, mats, outs)
-    has_det = bool(np.any(det_weight))
+    det_cols = np.flatnonzero(det_weight)
+    all_det = det_cols.size == n_cols
+    det_w = det_weight[det_cols]
 
     def forcing(m: SystemMatrices, R: np.ndarray, Rd: np.ndarray) -> np.ndarray:
         F = m.input_r @ R
         F += m.input_r_rate @ Rd
-        if has_det and m.force_det.any():
-            F += np.outer(m.force_det, det_weight)
+        if det_cols.size and m.force_det.any():
+            if all_det:
+                F += np.outer(m.force_det, det_weight)
+            else:  # PEM: only the deterministic column carries the load
+                F[:, det_cols] += m.force_det[:, None] * det_w
         return F
 
     def output(o: OutputMatrices, u, vel, acc, R, Rd) -> np.ndarray:

@@ -1,0 +1,131 @@
+"""Node ``updater``: online model updating (thin adapter over maglev_ros/updating/online.py).
+
+Subscribes /testline/metadata (latched), /maglev/modes (ModalEstimate),
+/maglev/twin/residual/vehicle_accel (SensorBlock) and, for the magnet layer's twin input,
+/testline/vehicle/{accel,gap,position}. Publishes /maglev/twin/parameters (TwinParameters,
+latched) after each accepted update; each accepted update is stored in the parameter history
+(parameter ``history_path``, JSON lines, atomic). On start the last accepted record of the history
+is republished, so a restarted node (and a late twin) get the current parameters.
+
+Parameters: ``history_path`` (default ``maglev_twin_parameters.jsonl``), ``freq_rel_tol`` (2e-3),
+``n_sigma`` (3.0), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15),
+``max_window_s`` (8.0), ``magnet_layer`` (true: run it when the residual warrants).
+The magnet layer takes tens of seconds; it runs in a worker thread so the node keeps receiving.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import threading
+
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
+from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node
+
+TOPIC_PARAMETERS = "/maglev/twin/parameters"
+TOPIC_MODES = "/maglev/modes"
+TOPIC_RESIDUAL = "/maglev/twin/residual/vehicle_accel"
+VEHICLE_TOPICS = ("/testline/vehicle/accel", "/testline/vehicle/gap", "/testline/vehicle/position")
+
+
+class UpdaterNode(Node):
+    def __init__(self) -> None:
+        super().__init__("updater")
+        from maglev_ros.updating.online import OnlineUpdater
+        p = self.declare_parameter
+        self.core = OnlineUpdater(
+            p("history_path", "maglev_twin_parameters.jsonl").value,
+            freq_rel_tol=float(p("freq_rel_tol", 2e-3).value), n_sigma=float(p("n_sigma", 3.0).value),
+            max_modes=int(p("max_modes", 4).value), magnet_min_s=float(p("magnet_min_s", 3.0).value),
+            nrmse_trigger=float(p("nrmse_trigger", 0.15).value), max_window_s=float(p("max_window_s", 8.0).value))
+        self.magnet_enabled = bool(p("magnet_layer", True).value)
+        self.pub = self.create_publisher(TwinParameters, TOPIC_PARAMETERS, QOS_LATCHED)
+        self.lock = threading.Lock()
+        self.worker: threading.Thread | None = None
+        self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
+        self.create_subscription(ModalEstimate, TOPIC_MODES, self._on_modes, QOS_STREAM)
+        self.create_subscription(SensorBlock, TOPIC_RESIDUAL, self._on_residual, QOS_STREAM)
+        for t in VEHICLE_TOPICS:
+            self.create_subscription(SensorBlock, t, self._vehicle(t), QOS_STREAM)
+        last = self.core.restore()
+        if last is not None:
+            self.get_logger().info(f"republishing parameters rev {last.revision} from {self.core.history.path}")
+            self._publish(last)
+
+    def _publish(self, pub) -> None:
+        m = TwinParameters()
+        now = self.get_clock().now().to_msg()
+        m.header.stamp = now
+        m.revision = int(pub.revision)
+        m.names = list(pub.names)
+        m.values = [float(v) for v in pub.values]
+        m.units = list(pub.units)
+        m.std = [float(s) if math.isfinite(s) else float("nan") for s in pub.std]
+        m.identifiable = [bool(b) for b in pub.identifiable]
+        m.provenance_json = pub.provenance_json
+        self.pub.publish(m)
+
+    def _on_metadata(self, msg) -> None:
+        from maglev_ros.errors import UserError
+        try:
+            with self.lock:
+                self.core.set_metadata(json.loads(msg.data))
+        except (UserError, ValueError) as exc:
+            self.get_logger().error(f"/testline/metadata: {exc}")
+
+    def _on_modes(self, msg) -> None:
+        from maglev_ros.errors import UserError
+        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        try:
+            with self.lock:
+                pub = self.core.on_modes(list(msg.modes), stamp)
+        except UserError as exc:
+            self.get_logger().error(f"{TOPIC_MODES}: {exc}")
+            return
+        if pub is not None:
+            self.get_logger().info(f"guideway update accepted: rev {pub.revision}")
+            self._publish(pub)
+
+    def _vehicle(self, topic: str):
+        def cb(msg) -> None:
+            with self.lock:
+                self.core.on_vehicle_block(topic, block_from_msg(msg))
+        return cb
+
+    def _on_residual(self, msg) -> None:
+        if not self.magnet_enabled:
+            return
+        blk = block_from_msg(msg)
+        with self.lock:
+            if self.worker is not None and self.worker.is_alive():
+                return
+            e = self.core.residual_ready(blk)
+            if e is None:
+                return
+            self.core._res.clear()
+
+        def work():
+            from maglev_ros.errors import UserError
+            try:
+                with self.lock:
+                    pub = self.core.run_magnet_layer(residual_nrmse=e)
+            except UserError as exc:
+                self.get_logger().error(f"magnet layer: {exc}")
+                return
+            if pub is not None:
+                self.get_logger().info(f"magnet update accepted: rev {pub.revision}")
+                self._publish(pub)
+        self.get_logger().info(f"residual NRMSE {e:.3f}: running the magnet layer")
+        self.worker = threading.Thread(target=work, daemon=True)
+        self.worker.start()
+
+
+def main(args=None) -> int:
+    return run_node(UpdaterNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,67 @@
+"""Benchmark: the full two-layer update (ambient modes -> guideway layer -> magnet layer) on simulated
+recordings, wall time and model evaluations, with the surrogate vs the direct model.
+
+    .venv/bin/python bench/bench_update.py [--quick] [--direct-iterations N]
+
+Runs (same bags, same run):
+  A. default: guideway layer on the direct FE model (cheap eigenproblem), magnet layer with the
+     Elman surrogate (optimal LHS samples) + MOPSO + GRP + direct polish;
+  B. guideway layer with the Elman surrogate instead (shows the surrogate is not needed there);
+  C. magnet layer with the surrogate replaced by the direct coupled model inside MOPSO. Its full
+     budget (particles x iterations simulations) takes hours, so it runs ``--direct-iterations``
+     iterations and the time for the full budget is extrapolated from the measured time per simulation.
+Target: A under 5 minutes on 2 cores. Prints ratios against A.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true", help="smaller budgets (smoke run)")
+    ap.add_argument("--direct-iterations", type=int, default=2)
+    a = ap.parse_args()
+    from test_updating_pipeline import _bag
+    from maglev_ros.updating.guideway_layer import GuidewayLayer
+    from maglev_ros.updating.magnet_layer import MagnetLayer
+    from maglev_ros.updating.pipeline import update_from_bags
+    tmp = Path(tempfile.mkdtemp(prefix="bench_update_"))
+    t = time.perf_counter()
+    amb = _bag(tmp, "amb", "ambient", duration_s=60.0, seed=5)
+    p1 = _bag(tmp, "p1", "pass", seed=21)
+    print(f"simulated bags in {time.perf_counter() - t:.1f} s ({tmp})")
+    ns, pol = (20, 10) if a.quick else (60, 40)
+    mopso = dict(n_particles=50, n_iterations=100)
+
+    def run(label, gl, ml):
+        t0 = time.perf_counter()
+        up = update_from_bags(amb, [p1], guideway_layer=gl, magnet_layer=ml)
+        wall = time.perf_counter() - t0
+        g, m = up.guideway, up.magnet
+        print(f"{label}: wall {wall:7.1f} s | guideway {g.wall_time_s:6.1f} s, {g.n_model_evaluations} FE evaluations"
+              f" | magnet {m.wall_time_s:7.1f} s, {m.n_model_evaluations} coupled simulations"
+              f" | NRMSE {up.document['magnet_accel_nrmse']['nominal']:.3f} -> {up.document['magnet_accel_nrmse']['updated']:.3f}")
+        return wall, up
+    wa, ua = run("A surrogate (magnet) / direct (guideway)", GuidewayLayer(), MagnetLayer(n_samples=ns, polish_max_nfev=pol, **mopso))
+    wb, ub = run("B surrogate in both layers             ", GuidewayLayer(use_surrogate=True), MagnetLayer(n_samples=ns, polish_max_nfev=pol, **mopso))
+    print(f"B/A wall ratio {wb / wa:.2f}; guideway surrogate held-out score {ub.guideway.surrogate_score}")
+    it = a.direct_iterations
+    wc, uc = run(f"C direct magnet MOPSO ({it} iterations)  ", GuidewayLayer(),
+                 MagnetLayer(use_surrogate=False, polish_max_nfev=pol, n_particles=50, n_iterations=it))
+    per_sim = uc.magnet.wall_time_s / max(uc.magnet.n_model_evaluations, 1)
+    full = per_sim * (mopso["n_particles"] * (mopso["n_iterations"] + 1) + pol * 4 + 8)
+    print(f"C: {per_sim:.2f} s per coupled simulation -> full direct budget "
+          f"({mopso['n_particles']} x {mopso['n_iterations'] + 1} + polish) ~ {full / 60:.0f} min = {full / wa:.0f} x A")
+    print(f"target: A under 300 s -> {'met' if wa < 300 else 'NOT met'} ({wa:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

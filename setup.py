@@ -16,6 +16,7 @@ NODES = {
     "summary": "maglev_ros.nodes.summary:main",
     "irregularity": "maglev_ros.nodes.irregularity:main",
     "twin": "maglev_ros.nodes.twin:main",
+    "modal_id": "maglev_ros.nodes.modal_id:main",
 }
 
 setup(
@@ -39,6 +40,7 @@ setup(
         "rosbags>=0.10",
         "mcap>=1.1",
         "numba>=0.60",
+        "threadpoolctl>=3",
         "torch==2.13.0",
         "pymoo>=0.6.1",
     ],

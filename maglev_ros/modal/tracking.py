@@ -173,6 +173,7 @@ class TrackedMode:
     misses: int
     first_seen_s: float
     last_seen_s: float
+    mpc: float = float("nan")          # modal phase collinearity of the latest estimate
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -230,6 +231,7 @@ class _Track:
     misses: int
     first: float
     last: float
+    mpc: float = float("nan")
 
 
 class ModeTracker:
@@ -279,6 +281,7 @@ class ModeTracker:
                 tr.f, tr.z = m.frequency_hz, m.damping_ratio
                 tr.shape, tr.shape_dict = shapes[assigned[a]], dict(m.mode_shape)
                 tr.sf, tr.sz = m.std_frequency_hz, m.std_damping_ratio
+                tr.mpc = m.mpc
                 if tr.n == 0:
                     tr.mf, tr.mz, tr.vf, tr.vz = tr.f, tr.z, 0.0, 0.0
                 else:
@@ -310,7 +313,7 @@ class ModeTracker:
             tr = _Track(id="?", f=m.frequency_hz, z=m.damping_ratio, shape=shapes[b],
                         shape_dict=dict(m.mode_shape), sf=m.std_frequency_hz,
                         sz=m.std_damping_ratio, mf=m.frequency_hz, vf=0.0, mz=m.damping_ratio,
-                        vz=0.0, n=1, misses=0, first=time_s, last=time_s)
+                        vz=0.0, n=1, misses=0, first=time_s, last=time_s, mpc=m.mpc)
             if self.min_confirm <= 1:
                 tr.id = f"M{self._next}"
                 self._next += 1
@@ -323,5 +326,61 @@ class ModeTracker:
             std_frequency_hz=t.sf, std_damping_ratio=t.sz, running_mean_frequency_hz=t.mf,
             running_std_frequency_hz=float(np.sqrt(t.vf)), running_mean_damping_ratio=t.mz,
             running_std_damping_ratio=float(np.sqrt(t.vz)), n_updates=t.n, misses=t.misses,
-            first_seen_s=t.first, last_seen_s=t.last) for t in keep if not t.id.startswith("?"))
+            first_seen_s=t.first, last_seen_s=t.last, mpc=t.mpc) for t in keep if not t.id.startswith("?"))
         return TrackerUpdate(float(time_s), out, tuple(events))
+
+
+@dataclass(frozen=True)
+class OnlineModalConfig:
+    """Settings of the online identification (the ``modal_id`` node's parameters)."""
+    window_s: float = 120.0
+    update_s: float = 2.0
+    decimate_to_hz: float | None = 500.0
+    block_rows: int = 40
+    max_order: int = 60
+    order_step: int = 4
+    fmin_hz: float = 5.0
+    fmax_hz: float = 150.0
+    n_blocks: int = 6
+    freq_tol: float = 0.03
+    mac_min: float = 0.8
+    max_misses: int = 3
+    min_confirm: int = 2
+
+
+class OnlineModalID:
+    """Blocks of the guideway acceleration stream in, tracked modes out (no ROS).
+
+    ``push(stamp_s, data, channels, fs_hz)`` feeds one block (n, c); it returns the tracker
+    updates produced (one per ``update_s`` of stream once ``window_s`` has filled). A change of
+    channels or rate restarts the identification (reported in ``restarts``).
+    """
+
+    def __init__(self, config: OnlineModalConfig = OnlineModalConfig()):
+        self.config = config
+        self.tracker = ModeTracker(freq_tol=config.freq_tol, mac_min=config.mac_min,
+                                   max_misses=config.max_misses, min_confirm=config.min_confirm)
+        self.stream: StreamingSSI | None = None
+        self.key = None
+        self.t0_s = None
+        self.restarts = 0
+
+    def _start(self, channels, fs_hz: float) -> None:
+        c = self.config
+        ssi = SSICov(block_rows=c.block_rows, orders=range(c.order_step, c.max_order + 1, c.order_step),
+                     decimate_to_hz=c.decimate_to_hz if c.decimate_to_hz and c.decimate_to_hz < fs_hz else None,
+                     freq_range_hz=(c.fmin_hz, c.fmax_hz), n_blocks=c.n_blocks, spectrum=False)
+        self.stream = StreamingSSI(ssi, fs_hz, channels, window_s=c.window_s, update_s=c.update_s)
+        self.key = (tuple(channels), float(fs_hz))
+
+    def push(self, stamp_s: float, data: np.ndarray, channels, fs_hz: float) -> list[TrackerUpdate]:
+        key = (tuple(channels), float(fs_hz))
+        if self.key != key:
+            if self.key is not None:
+                self.restarts += 1
+            self._start(channels, fs_hz)
+            self.t0_s = float(stamp_s)
+        out = []
+        for result in self.stream.push(np.asarray(data, dtype=float)):
+            out.append(self.tracker.update(result, self.t0_s + self.stream.time_s))
+        return out

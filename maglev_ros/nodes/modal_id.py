@@ -1,0 +1,103 @@
+"""Node ``modal_id``: guideway modes identified online from /testline/guideway/accel.
+
+Sliding-window SSI-cov (``maglev_ros.modal.tracking.OnlineModalID``) with modes tracked across
+updates (stable ids, "new"/"lost"); publishes maglev_msgs/ModalEstimate on /maglev/modes after
+every update (every ``update_s`` of stream time once ``window_s`` has filled).
+
+Parameters (also from YAML: ``--params-file config/modal_id.yaml``): window_s (120), update_s
+(2), decimate_to_hz (500; 0 = none), block_rows (40), max_order (60), order_step (4), fmin_hz
+(5), fmax_hz (150), n_blocks (6), freq_tol (0.03), mac_min (0.8), max_misses (3),
+min_confirm (2), channels (string[]; default: every vertical guideway accelerometer).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import fields
+
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from maglev_msgs.msg import ModalEstimate, ModalMode, SensorBlock
+from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, parse_metadata
+from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
+from maglev_ros.nodes._common import block_from_msg, qos_for, run_node, stamp_to_msg
+
+TOPIC_MODES = "/maglev/modes"
+
+
+class ModalIdNode(Node):
+    def __init__(self) -> None:
+        super().__init__("modal_id")
+        defaults = OnlineModalConfig()
+        values = {}
+        for f in fields(OnlineModalConfig):
+            default = getattr(defaults, f.name)
+            v = self.declare_parameter(f.name, 0.0 if default is None else default).value
+            values[f.name] = (None if f.name == "decimate_to_hz" and not v else v)
+        self.core = OnlineModalID(OnlineModalConfig(**values))
+        self.wanted = [c for c in self.declare_parameter("channels", [""]).value if c]
+        self.pub = self.create_publisher(ModalEstimate, TOPIC_MODES, qos_for(TOPIC_MODES))
+        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
+        self.create_subscription(SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block,
+                                 qos_for(TOPIC_GUIDEWAY_ACCEL))
+
+    def _on_metadata(self, msg) -> None:
+        if self.wanted:
+            return
+        try:
+            md = parse_metadata(msg.data, TOPIC_METADATA)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"metadata unusable: {exc}")
+            return
+        self.wanted = [sid for sid, s in md.sensors_on_topic(TOPIC_GUIDEWAY_ACCEL).items()
+                       if s.direction in (None, "vertical")]
+
+    def _on_block(self, msg) -> None:
+        block = block_from_msg(msg)
+        cols = list(range(len(block.channels)))
+        if self.wanted:
+            cols = [j for j, c in enumerate(block.channels) if c in self.wanted] or cols
+        channels = [block.channels[j] for j in cols]
+        try:
+            updates = self.core.push(block.stamp_s, block.data[:, cols], channels,
+                                     block.sample_rate_hz)
+        except Exception as exc:  # noqa: BLE001  (bad block: report, keep running)
+            self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} block at {block.stamp_s:.3f} s: {exc}")
+            return
+        for up in updates:
+            self.pub.publish(self._message(up, block.stamp_ns))
+
+    def _message(self, update, stamp_ns: int) -> ModalEstimate:
+        out = ModalEstimate()
+        stamp_to_msg(stamp_ns, out.header)
+        out.header.frame_id = "guideway"
+        out.method = "ssi-cov"
+        out.window_s = float(self.core.config.window_s)
+        new = {e.id for e in update.events if e.kind == "new"}
+        for m in update.modes:
+            mm = ModalMode()
+            mm.id = m.id
+            mm.status = "new" if m.id in new else "tracked"
+            mm.frequency_hz = float(m.frequency_hz)
+            mm.damping_ratio = float(m.damping_ratio)
+            mm.std_frequency_hz = float(m.std_frequency_hz)
+            mm.std_damping_ratio = float(m.std_damping_ratio)
+            mm.mpc = float(m.mpc)
+            mm.channels = list(m.mode_shape)
+            mm.mode_shape = [float(v) for v in m.mode_shape.values()]
+            out.modes.append(mm)
+        for e in update.events:
+            if e.kind == "lost":
+                mm = ModalMode()
+                mm.id, mm.status, mm.frequency_hz = e.id, "lost", float(e.frequency_hz)
+                mm.damping_ratio = mm.std_frequency_hz = mm.std_damping_ratio = mm.mpc = float("nan")
+                out.modes.append(mm)
+        return out
+
+
+def main(args=None) -> int:
+    return run_node(ModalIdNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -20,7 +20,7 @@ the line).
 from __future__ import annotations
 
 import functools
-import math
+import json
 
 import numpy as np
 import pytest
@@ -184,6 +184,7 @@ def test_outside_band_and_outside_record_the_result_says_so():
     c = _case("25kmh")
     ti = c["ti"]
     d = ti.to_dict()
+    json.dumps(ti.to_dict(include_profile=True), allow_nan=False)     # JSON-ready
     assert d["band"]["max_wavelength_m"] == ti.max_wavelength_m and d["kind"] == "unloaded"
     assert "outside the band" in d["band"]["note"]
     # outside the valid stretch the twin input is exactly zero and flagged invalid

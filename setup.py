@@ -17,6 +17,7 @@ NODES = {
     "irregularity": "maglev_ros.nodes.irregularity:main",
     "twin": "maglev_ros.nodes.twin:main",
     "modal_id": "maglev_ros.nodes.modal_id:main",
+    "updater": "maglev_ros.nodes.updater:main",
 }
 
 setup(

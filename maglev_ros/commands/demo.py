@@ -67,7 +67,8 @@ def run(args) -> int:
                        params={"idle_s": 3.0, "json_out": str(graph_json.resolve())})
     code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=5.0,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
-                                        "wait_subscribers": 1}})
+                                        "wait_subscribers": 1},
+                             "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})
     if code != 0:
         raise UserError(f"replay ended with code {code}")
     if not graph_json.exists():

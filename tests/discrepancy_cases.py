@@ -58,18 +58,20 @@ class Case:
         return CATEGORY.get(self.effect) if self.effect else None
 
 
-def metadata(design: dict, kind: str, speed: float) -> dict:
-    spans = [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(N_SPANS)]
+def metadata(design: dict, kind: str, speed: float, n_spans: int = N_SPANS) -> dict:
+    spans = [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(n_spans)]
     sensors = {}
-    for i in range(N_SPANS):
+    for i in range(n_spans):
         sensors[f"G{i + 1}A"] = {"topic": "/testline/guideway/accel", "quantity": "acceleration",
                                  "direction": "vertical", "span": f"S{i + 1}",
                                  "position_m": (i + 0.5) * L_SPAN, "side": "center"}
         sensors[f"G{i + 1}Q"] = {"topic": "/testline/guideway/accel", "quantity": "acceleration",
                                  "direction": "vertical", "span": f"S{i + 1}",
                                  "position_m": (i + 0.2) * L_SPAN, "side": "center"}
-    sensors["G2D"] = {"topic": "/testline/guideway/displacement", "quantity": "displacement",
-                      "direction": "vertical", "span": "S2", "position_m": 1.5 * L_SPAN, "side": "center"}
+    j = min(1, n_spans - 1)
+    sensors[f"G{j + 1}D"] = {"topic": "/testline/guideway/displacement", "quantity": "displacement",
+                             "direction": "vertical", "span": f"S{j + 1}", "position_m": (j + 0.5) * L_SPAN,
+                             "side": "center"}
     if kind == "pass":
         for k in (1, 8):
             sensors[f"M{k}A"] = {"topic": "/testline/vehicle/accel", "quantity": "acceleration",
@@ -241,7 +243,8 @@ NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 
 
 
 def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, speeds=(22.0, 30.0),
-              split: str = "tune", variant: dict | None = None, design_error: dict | None = None) -> Case:
+              split: str = "tune", variant: dict | None = None, design_error: dict | None = None,
+              n_spans: int = N_SPANS) -> Case:
     rng = np.random.default_rng(seed)
     variant = dict(variant or {})
     cfg_true = twin_config()
@@ -253,7 +256,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
     design = {"guideway": {"youngs_modulus_pa": g.youngs_modulus_pa / (1 + derr["E"]),
                            "bearing_stiffness_n_per_m": g.bearing_stiffness_n_per_m / (1 + derr["kb"])},
               "levitation": {"kp_a_per_m": lev.kp_a_per_m / (1 + derr["kp"])}}
-    md_line = {"spans": [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(N_SPANS)]}
+    md_line = {"spans": [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(n_spans)]}
     spans = list(line_spans(md_line, cfg_true))
     tp = dict(params)
     if effect == "girder_stiffness_loss":
@@ -262,14 +265,14 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
                                                    youngs_modulus_pa=spans[i].props.youngs_modulus_pa * (1 - tp["loss"])))
     noise_scale = variant.get("noise_scale", 1.0)
     colour = variant.get("noise_colour", "white")
-    md_pass = [metadata(design, "pass", v) for v in speeds]
-    md_amb = metadata(design, "ambient", 0.0)
+    md_pass = [metadata(design, "pass", v, n_spans) for v in speeds]
+    md_amb = metadata(design, "ambient", 0.0, n_spans)
     gsens = {k: s["position_m"] for k, s in md_amb["sensors"].items()}
     passes = []
     for v, md in zip(speeds, md_pass):
         offs = np.array(cfg_true.vehicle.magnet_offsets_m)
         x0 = -offs.max() - v * 1.0
-        dur = (N_SPANS * L_SPAN - offs.min() + v * 1.0 - x0) / v
+        dur = (n_spans * L_SPAN - offs.min() + v * 1.0 - x0) / v
         st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, effect, tp, variant)
         res = st.advance(dur, v)
         t_hi = res.time_s
@@ -306,7 +309,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         passes.append(recording_from_arrays(md, {k: (t, y) for k, y in sig.items()}, (pos_t, pos, spd),
                                             source=f"{case_id}/pass_{v:g}"))
     # ambient recording (guideway only)
-    n_amb = int(20.0 * 1000)
+    n_amb = int(variant.get("ambient_s", 20.0) * 1000)
     t_amb = np.arange(1, n_amb + 1) * 1e-3
     names = list(gsens)
     amb_hi = {k: np.zeros(n_amb) for k in names}
@@ -424,6 +427,7 @@ def write_recording_bag(rec: Recording, path, block_s: float = 0.1) -> None:
 def write_case_bags(case: Case, directory) -> tuple[str, list[str]]:
     from pathlib import Path
     d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
     amb = d / "ambient"
     write_recording_bag(case.ambient, amb)
     ps = []

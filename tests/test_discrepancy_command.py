@@ -24,7 +24,8 @@ CATEGORIES = {"boundary_condition", "control", "magnetic_force", "excitation", "
 def run(tmp_path_factory):
     d = tmp_path_factory.mktemp("diag")
     case = make_case("cmd", "sensor_error", {"channel": "G2A", "kind": "scale", "value": 1.4}, seed=11,
-                     speeds=(30.0, 36.0), variant={"n_el": 20, "noise_colour": "white"})
+                     speeds=(32.0, 38.0), variant={"n_el": 20, "noise_colour": "white", "ambient_s": 8.0},
+                     n_spans=2)
     amb, passes = write_case_bags(case, d / "bags")
     out = d / "out"
     argv = ["diagnose", "--ambient", amb, "--out", str(out)]

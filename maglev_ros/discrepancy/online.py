@@ -5,8 +5,9 @@ they arrive; ``add_position(t_s, x_m)`` the vehicle position. Every ``hop_s`` ea
 ``frame_s`` of residual is cut into the bands of :mod:`.features`; the noise floor of each band is
 the running 20th percentile of that band's power over the last ``history_frames`` frames (minimum
 statistics: a mismatch that lasts less than most of the history does not raise its own floor).
-A band is flagged when its power exceeds ``threshold`` x floor in ``min_frames`` consecutive
-frames; when the flagged run ends (or lasts ``max_s``) one ``MismatchEvent`` is emitted with the
+A band is flagged when its power exceeds max(``threshold``, chi2 ratio) x floor in ``min_frames`` consecutive
+frames (chi2 ratio = 1e-5 upper quantile / 20 % quantile of a chi-square band power with the band's
+degrees of freedom, so low-frequency bands with few periodogram bins are not called on noise); when the flagged run ends (or lasts ``max_s``) one ``MismatchEvent`` is emitted with the
 channels, time, place of the vehicle, band and severity (mean power / floor). Naming the missing
 physics needs the batch fit of several passes (``maglev-ros diagnose``); the event says so.
 """
@@ -62,6 +63,17 @@ class OnlineDetector:
         self._pos_t: deque = deque(maxlen=20000)
         self._pos_x: deque = deque(maxlen=20000)
         self.events: list[MismatchEvent] = []
+        self._thr_cache: dict[float, np.ndarray] = {}
+
+    def _thresholds(self, fs: float) -> np.ndarray:
+        thr = self._thr_cache.get(fs)
+        if thr is None:
+            from scipy.stats import chi2
+            f = np.fft.rfftfreq(int(round(self.frame_s * fs)), 1.0 / fs)
+            nbins = np.array([max(1, int(np.sum((f >= a) & (f < b)))) for a, b in zip(self.edges[:-1], self.edges[1:])])
+            dof = 2.0 * nbins
+            thr = self._thr_cache[fs] = np.maximum(self.threshold, chi2.ppf(1 - 1e-5, dof) / chi2.ppf(0.2, dof))
+        return thr
 
     def add_position(self, t_s, x_m) -> None:
         for t, x in zip(np.atleast_1d(t_s), np.atleast_1d(x_m)):
@@ -107,10 +119,11 @@ class OnlineDetector:
         if len(hist) >= 4:
             floor = np.percentile(np.array(hist), 20, axis=0) + 1e-300
             ratio = p / floor
+            thr = self._thresholds(fs)
             for b in np.flatnonzero(usable):
                 key = (ch, int(b))
                 run = self._runs.get(key)
-                if ratio[b] > self.threshold:
+                if ratio[b] > thr[b]:
                     if run is None:
                         run = self._runs[key] = {"t0": tend - self.frame_s, "n": 0, "sev": []}
                     run["n"] += 1

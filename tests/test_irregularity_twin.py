@@ -173,6 +173,8 @@ def test_twin_driven_by_profile_reproduces_magnet_accelerations(name):
     # the twin follows the measured position (exactly at constant speed; within mm when the
     # speed changes: the speed channel is interpolated between position samples)
     assert c["drift"] < (5e-3 if c["uneven"] else 1e-6), c["drift"]
+    # prediction sits exactly on the recorded accel samples (delay accounted for)
+    assert np.allclose(c["pred"].time_s, c["accel"].time_s, atol=1e-9)
     assert nr["nrmse"] <= 0.2, nr
     assert max(nr["per_channel"].values()) <= 0.25, nr
     assert nr["window_s"] > 4.0

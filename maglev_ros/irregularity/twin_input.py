@@ -180,8 +180,9 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
     The twin starts in static equilibrium one sample before ``time_s[0] - sensor_delay_s`` at the
     measured position and advances in ``block_s`` steps with the measured speed (linear ramps in
     between); its outputs are labelled ``t + sensor_delay_s`` so they line up with the delayed
-    recorded channels. Returns the ``PassResult`` (its ``position_m`` is the twin's reference
-    position at the un-delayed instant) and the maximal |twin position - measured position|.
+    recorded channels. Returns ``(PassResult, drift_m, stepper)``: the twin's outputs (its
+    ``position_m`` is the reference position at the un-delayed instant), the maximal |twin
+    position - measured position| and the ``TwinStepper`` (vehicle model, magnet offsets).
     """
     from maglev_ros.twin.coupling import PassResult, TwinStepper
     t = np.asarray(time_s, float)

@@ -103,6 +103,14 @@ class ChannelData:
     def unit(self, name: str) -> str:
         return self.units[self.channels.index(name)]
 
+    def delayed_by(self, delay_s: float) -> "ChannelData":
+        """The same samples with ``time_s`` moved back by an acquisition delay (the time each
+        sample describes, see Metadata.acquisition_delay_s); self when the delay is 0."""
+        if not delay_s:
+            return self
+        return ChannelData(self.topic, self.channels, self.units, self.sample_rate_hz,
+                           self.time_s - float(delay_s), self.data, self.issues)
+
 
 class _BlockViews:
     """datas[i] -> rows of block i inside the concatenated array (for duplicate checks)."""

@@ -213,6 +213,20 @@ class Metadata:
         d = self.raw.get("design")
         return None if d is None else dict(d)
 
+    def acquisition_delay_s(self, topic: str) -> float:
+        """Delay of a topic's samples behind their stamps from the acquisition chain [s].
+
+        Optional extension of the contract (docs/contract-extensions.md): ``acquisition:
+        {topic: {"delay_s": d}}`` says that the sample stamped t describes the physics at
+        t - d (e.g. the group delay of a causal anti-alias filter). 0 when not given.
+        """
+        entry = (self.raw.get("acquisition") or {}).get(topic) or {}
+        d = entry.get("delay_s", 0.0) if isinstance(entry, dict) else 0.0
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d < 0:
+            raise ContractError(f"{self.source}: metadata key acquisition.{topic}.delay_s: "
+                                f"expected a non-negative number of seconds, got {d!r}")
+        return float(d)
+
     def to_dict(self) -> dict:
         return json.loads(json.dumps(self.raw))
 

@@ -61,9 +61,9 @@ def read_inputs(path: str):
             if topic not in r.topics:
                 raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
                                     "vehicle accel, gap and position)")
-        accel = r.read_topic(TOPIC_VEHICLE_ACCEL)
-        gap = r.read_topic(TOPIC_VEHICLE_GAP)
-        pos = r.read_topic(TOPIC_VEHICLE_POSITION)
+        # samples placed at the time they describe (optional acquisition delay in the metadata)
+        accel, gap, pos = (r.read_topic(t).delayed_by(md.acquisition_delay_s(t))
+                           for t in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
     offsets = md.magnet_offsets_m
     if not offsets:
         raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")

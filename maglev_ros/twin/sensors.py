@@ -34,7 +34,8 @@ from scipy import signal
 
 from maglev_ros.errors import UserError
 
-__all__ = ["AntiAlias", "NoiseSpec", "InstrumentChain", "anti_alias_sos", "pink_noise_bank"]
+__all__ = ["AntiAlias", "NoiseSpec", "InstrumentChain", "anti_alias_sos", "anti_alias_delay_s",
+           "pink_noise_bank"]
 
 FILTER_KINDS = ("butterworth", "bessel", "none")
 
@@ -143,6 +144,17 @@ def anti_alias_sos(spec: AntiAlias, fs_out_hz: float, fs_internal_hz: float) -> 
         return signal.butter(spec.order, wn, btype="low", output="sos", fs=fs_internal_hz)
     # Bessel normalised so the -3 dB point is at the corner ("mag"), like a data sheet corner
     return signal.bessel(spec.order, wn, btype="low", output="sos", norm="mag", fs=fs_internal_hz)
+
+
+def anti_alias_delay_s(spec: AntiAlias, fs_out_hz: float, fs_internal_hz: float) -> float:
+    """Low-frequency group delay of the anti-alias filter [s] (0 without a filter): what a
+    recording states as its acquisition delay (docs/contract-extensions.md)."""
+    sos = anti_alias_sos(spec, fs_out_hz, fs_internal_hz)
+    if sos is None:
+        return 0.0
+    b, a = signal.sos2tf(sos)
+    _, gd = signal.group_delay((b, a), w=[1e-4 * fs_out_hz], fs=fs_internal_hz)
+    return float(gd[0]) / fs_internal_hz
 
 
 def pink_noise_bank(fs_hz: float, f_min_hz: float) -> tuple[np.ndarray, np.ndarray]:

@@ -59,7 +59,7 @@ from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPI
 from maglev_ros.errors import UserError
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config
 from maglev_ros.twin.guideway import Guideway, ModalBasis
-from maglev_ros.twin.sensors import AntiAlias, InstrumentChain, NoiseSpec
+from maglev_ros.twin.sensors import AntiAlias, InstrumentChain, NoiseSpec, anti_alias_delay_s
 
 __all__ = ["DEFAULTS", "SCENARIO_DIR", "builtin_scenarios", "load_scenario", "apply_sets",
            "Scenario", "SimulatedRecord", "SimulationResult", "run_scenario", "write_record",
@@ -677,6 +677,15 @@ def _chains(sc: Scenario, groups: dict[str, list[str]], rates: dict, rng_seq: np
     return out
 
 
+def _state_acquisition(md: dict, chains: dict) -> None:
+    """Write the optional ``acquisition`` block (docs/contract-extensions.md): the delay of each
+    filtered topic behind its stamps, as a data sheet of the acquisition system would state."""
+    acq = md.setdefault("acquisition", {})
+    for g, ch in chains.items():
+        acq[GROUPS[g][0]] = {"delay_s": anti_alias_delay_s(ch.anti_alias, ch.fs_out_hz, ch.fs_internal_hz),
+                             "anti_alias": ch.anti_alias.to_dict()}
+
+
 def _lcm(values) -> int:
     out = 1
     for v in values:
@@ -760,6 +769,7 @@ def run_scenario(sc: Scenario) -> SimulatedRecord:
         internal.update({"time_s": res.time_s, **{g: sig[g] for g in chans},
                          "position_m": res.position_m, "speed_mps": res.speed_mps})
         chains = _chains(sc, chans, rates, seq_noise)
+        _state_acquisition(md, chains)
         decs = {g: ch.oversample for g, ch in chains.items()}
         d_pos = int(round(fs_int / rates["position_hz"]))
         if abs(fs_int / rates["position_hz"] - d_pos) > 1e-9:
@@ -792,6 +802,7 @@ def run_scenario(sc: Scenario) -> SimulatedRecord:
             raise UserError(f"{sc.source}: scenario key excitation.kind: expected distributed_white_noise, got {exc.get('kind')!r}")
         chans = {"guideway_accel": accel_ch}
         chains = _chains(sc, chans, rates, seq_noise)
+        _state_acquisition(md, chains)
         ch = chains["guideway_accel"]
         D = ch.oversample
         n_out = int(round(float(sc.raw["duration_s"]) * ch.fs_out_hz))

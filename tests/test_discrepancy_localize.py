@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from maglev_ros.discrepancy.evaluate import RecData, fit_noise_floor
-from maglev_ros.discrepancy.features import FrameGrid, band_powers, frame_grid, usable_bands
+from maglev_ros.discrepancy.features import FrameGrid, band_powers, band_widths, frame_grid, usable_bands
 from maglev_ros.discrepancy.localize import mismatches, residual_map
 from maglev_ros.discrepancy.recording import recording_from_arrays
 
@@ -22,10 +22,13 @@ def test_sinusoid_band_power_is_half_amplitude_squared(f0, amp):
     x = amp * np.sin(2 * np.pi * f0 * t + 0.3)
     g = _grid(t)
     p = band_powers(t, x, FS, g)
-    b = np.searchsorted(g.edges_hz, f0, side="right") - 1
-    # Hann leakage puts < 1 % outside the band for a tone >= 2 bins inside it
-    assert np.allclose(p[:, b], amp ** 2 / 2, rtol=0.02)
-    assert np.all(p.sum(axis=1) == pytest.approx(amp ** 2 / 2, rel=0.02))
+    # Parseval: the bands of a frame hold the tone's mean square A^2/2
+    assert np.allclose(p.sum(axis=1), amp ** 2 / 2, rtol=0.02)
+    # triangular bands between the centres c_b: the share of the upper band is (f0 - c_b)/(c_b+1 - c_b)
+    c = 0.5 * (g.edges_hz[1:] + g.edges_hz[:-1])
+    b = np.searchsorted(c, f0) - 1
+    share = (f0 - c[b]) / (c[b + 1] - c[b])
+    assert np.allclose(p[:, b + 1] / p.sum(axis=1), share, atol=0.03)
 
 
 def test_white_noise_band_power_and_noise_floor_monte_carlo():
@@ -33,8 +36,14 @@ def test_white_noise_band_power_and_noise_floor_monte_carlo():
     sigma = 0.01
     t = np.arange(0, 20, 1 / FS)
     g = _grid(t)
-    width = np.diff(g.edges_hz)
-    expect = sigma ** 2 * width / (FS / 2)          # white: variance spread evenly to Nyquist
+    # white: variance spread evenly to Nyquist; triangular band b integrates (c_b+1 - c_b-1)/2 Hz
+    c = 0.5 * (g.edges_hz[1:] + g.edges_hz[:-1])
+    width = np.empty(c.size)
+    width[1:-1] = (c[2:] - c[:-2]) / 2
+    width[0] = c[0] + (c[1] - c[0]) / 2
+    width[-1] = (c[-1] - c[-2]) / 2 + (g.edges_hz[-1] - c[-1])
+    assert np.allclose(band_widths(g), width, rtol=1e-3)
+    expect = sigma ** 2 * width / (FS / 2)
     est = []
     for _ in range(5):
         p = band_powers(t, rng.normal(0, sigma, t.size), FS, g)
@@ -58,7 +67,7 @@ def _rd(rec, noise_sigma):
     pm = {n: band_powers(c.time_s, c.values, c.sample_rate_hz, g) for n, c in rec.channels.items()}
     masks = {n: usable_bands(g, c.sample_rate_hz) for n, c in rec.channels.items()}
     rd = RecData(rec, g, pm, masks)
-    width = np.diff(g.edges_hz)
+    width = band_widths(g)
     for n in rec.channels:
         rd.noise[n] = noise_sigma ** 2 * width / (FS / 2)
     return rd

@@ -43,7 +43,8 @@ def _modal_bands(grid: FrameGrid, freqs_hz: np.ndarray, rel: float = 0.12) -> np
 def fit_noise_floor(p_frames: np.ndarray, grid: FrameGrid, usable: np.ndarray, exclude: np.ndarray) -> np.ndarray:
     """Smooth power-law noise floor (n_bands,) from band powers of quiet frames."""
     mean = np.nanmean(p_frames, axis=0) if p_frames.shape[0] else np.full(grid.n_bands, np.nan)
-    width = np.diff(grid.edges_hz)
+    from .features import band_widths
+    width = band_widths(grid)
     fc = np.maximum(grid.band_center_hz, 1.0)
     sel = usable & ~exclude & np.isfinite(mean) & (mean > 0)
     if sel.sum() < 3:
@@ -114,13 +115,14 @@ def _ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
     w = 2 * np.pi * f
     H2 = 1.0 / ((modal.omega_rad_s[None, :] ** 2 - w[:, None] ** 2) ** 2
                 + (2 * modal.damping_ratio[None, :] * modal.omega_rad_s[None, :] * w[:, None]) ** 2)
-    band = np.searchsorted(rd.grid.edges_hz, f, side="right") - 1
+    from .features import band_weights
+    W = band_weights(rd.grid, f)
     for n, ch in rd.rec.channels.items():
         if not ch.group.startswith("guideway") or ch.position_m is None:
             continue
         phi2 = modal.shapes_at([ch.position_m])[0] ** 2
         psd = H2 @ phi2 * (w ** 4 if ch.group == "guideway_accel" else 1.0)
-        out[n] = np.array([psd[band == b].sum() * df for b in range(rd.grid.n_bands)])
+        out[n] = (W @ psd) * df
     return out
 
 

@@ -1,8 +1,11 @@
 """Time-frequency band powers (the common currency of localization, fitting and acceptance).
 
 Every channel is cut into Hann frames (``frame_s`` long, hop ``hop_s``) on a common frame-time grid;
-in each frame the power in each band of ``BAND_EDGES_HZ`` is the integral of the one-sided
-periodogram over the band (so the band powers of a frame sum to its mean square). Bands above
+in each frame the power of each band of ``BAND_EDGES_HZ`` is the one-sided periodogram integrated
+with triangular weights that peak at the band's centre and reach zero at the neighbouring centres
+(a partition of unity, so the band powers of a frame still sum to its mean square). Triangular
+rather than rectangular bands make the features change smoothly when a mode moves by a few
+percent, as it does between FE meshes or integrators, instead of jumping across a band edge. Bands above
 ``nyquist_fraction`` of Nyquist are dropped (anti-alias filters differ between instruments).
 The fit measure is the NRMSE of band *amplitudes* sqrt(P): phase-insensitive, so deterministic
 physics (a stiffer bearing) and stochastic physics (ambient vibration, judged by its power) are
@@ -61,8 +64,7 @@ def band_powers(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -
     w = np.hanning(n)
     norm = 1.0 / (np.sum(w ** 2) * fs_hz)
     f = np.fft.rfftfreq(n, 1.0 / fs_hz)
-    band = np.searchsorted(grid.edges_hz, f, side="right") - 1
-    ok = (band >= 0) & (band < grid.n_bands)
+    W = band_weights(grid, f)                       # (n_bands, n_freq)
     starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
     out = np.full((grid.n_frames, grid.n_bands), np.nan)
     valid = (starts + n <= x.size) & (starts >= 0)
@@ -76,13 +78,43 @@ def band_powers(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -
     if n % 2 == 0:
         p[:, -1] /= 2.0
     df = fs_hz / n
-    pb = np.zeros((seg.shape[0], grid.n_bands))
-    for b in range(grid.n_bands):
-        sel = ok & (band == b)
-        if sel.any():
-            pb[:, b] = p[:, sel].sum(axis=1) * df
-    out[valid] = pb
+    out[valid] = (p @ W.T) * df
     return out
+
+
+def band_weights(grid: FrameGrid, f_hz: np.ndarray) -> np.ndarray:
+    """Triangular partition-of-unity weights (n_bands, len(f)) on the band centres; frequencies
+    above the last band's upper edge get no weight."""
+    c = grid.band_center_hz
+    f = np.asarray(f_hz, float)
+    W = np.zeros((c.size, f.size))
+    for b in range(c.size):
+        w = np.zeros_like(f)
+        if b == 0:
+            w[f <= c[0]] = 1.0
+        else:
+            sel = (f > c[b - 1]) & (f <= c[b])
+            w[sel] = (f[sel] - c[b - 1]) / (c[b] - c[b - 1])
+        if b == c.size - 1:
+            w[(f > c[b]) & (f < grid.edges_hz[-1])] = 1.0
+        else:
+            sel = (f > c[b]) & (f < c[b + 1])
+            w[sel] = (c[b + 1] - f[sel]) / (c[b + 1] - c[b])
+        W[b] = w
+    return W
+
+
+def band_widths(grid: FrameGrid) -> np.ndarray:
+    """Integral over frequency of each band's triangular weight [Hz] (white noise of PSD S gives
+    band power S * width)."""
+    c = grid.band_center_hz
+    w = np.empty(c.size)
+    if c.size == 1:
+        return np.array([grid.edges_hz[-1]])
+    w[1:-1] = (c[2:] - c[:-2]) / 2
+    w[0] = c[0] + (c[1] - c[0]) / 2
+    w[-1] = (c[-1] - c[-2]) / 2 + (grid.edges_hz[-1] - c[-1])
+    return w
 
 
 def channel_powers(rec: Recording, signals: dict[str, np.ndarray], grid: FrameGrid,

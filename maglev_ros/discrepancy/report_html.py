@@ -40,17 +40,17 @@ def _maps_figure(rmap, title: str):
         names = [n for n, c in rd.rec.channels.items() if c.group == grp]
         if names:
             groups.append((grp, names))
-    fig, axes = plt.subplots(len(groups), 1, figsize=(8, 2.0 * len(groups) + 0.6), squeeze=False)
+    fig, axes = plt.subplots(len(groups), 1, figsize=(8, 2.0 * len(groups) + 0.6), squeeze=False, sharex=True)
     t = g.t_center_s
     for ax, (grp, names) in zip(axes[:, 0], groups):
         sev = np.max([np.where(rmap.flags[n], np.log10(1 + np.abs(rmap.severity[n])), 0.0) for n in names], axis=0)
-        im = ax.imshow(sev.T, origin="lower", aspect="auto", cmap="magma",
+        im = ax.imshow(sev.T, origin="lower", aspect="auto", cmap="magma", vmin=0.0, vmax=max(1.0, float(sev.max())),
                        extent=(t[0] - g.frame_s / 4, t[-1] + g.frame_s / 4, 0, g.n_bands))
         ax.set_yticks(np.arange(g.n_bands)[::3] + 0.5)
         ax.set_yticklabels([f"{e:.0f}" for e in g.edges_hz[:-1][::3]])
         ax.set_ylabel(f"{grp}\nband [Hz]")
         fig.colorbar(im, ax=ax, label="log10(1 + residual/noise)")
-        if rd.rec.position_time_s is not None:
+        if rd.rec.position_time_s is not None and ax is axes[0, 0]:
             ax2 = ax.secondary_xaxis("top", functions=(lambda tt, rd=rd: np.interp(tt, rd.rec.position_time_s, rd.rec.position_m),
                                                         lambda xx, rd=rd: np.interp(xx, rd.rec.position_m, rd.rec.position_time_s)))
             ax2.set_xlabel("vehicle position [m]")

@@ -10,7 +10,9 @@ is republished, so a restarted node (and a late twin) get the current parameters
 Parameters: ``history_path`` (default ``maglev_twin_parameters.jsonl``), ``freq_rel_tol`` (2e-3),
 ``n_sigma`` (3.0), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15),
 ``max_window_s`` (8.0), ``magnet_layer`` (true: run it when the residual warrants).
-The magnet layer takes tens of seconds; it runs in a worker thread so the node keeps receiving.
+The magnet layer takes tens of seconds; it runs in a worker thread on copies of the buffered
+window and the current parameters, without holding the node's lock (the node keeps receiving
+and updating the guideway meanwhile); only accepting and storing the result takes the lock.
 """
 from __future__ import annotations
 
@@ -107,14 +109,17 @@ class UpdaterNode(Node):
                 return
             self.core._res.clear()
 
+            job = self.core.snapshot_magnet_job()      # copies of the buffers + current parameters
+
         def work():
             from maglev_ros.errors import UserError
-            try:
-                with self.lock:
-                    pub = self.core.run_magnet_layer(residual_nrmse=e)
+            try:                                       # the long part runs WITHOUT the lock
+                result = self.core.compute_magnet_update(job, residual_nrmse=e)
             except UserError as exc:
                 self.get_logger().error(f"magnet layer: {exc}")
                 return
+            with self.lock:                            # short: accept + store in the history
+                pub = self.core.accept_magnet_update(result)
             if pub is not None:
                 self.get_logger().info(f"magnet update accepted: rev {pub.revision}")
                 self._publish(pub)

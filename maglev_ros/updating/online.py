@@ -39,7 +39,7 @@ from maglev_ros.updating.guideway_layer import GuidewayLayer, SpanModel
 from maglev_ros.updating.history import ParameterHistory
 from maglev_ros.updating.magnet_layer import MagnetLayer, PassEvidence, nrmse
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
-from maglev_ros.updating.pipeline import TWIN_NAMES, modal_target, pass_irregularity
+from maglev_ros.updating.pipeline import TWIN_NAMES, PassRecording, modal_target, pass_evidence
 
 
 @dataclass(frozen=True)
@@ -214,44 +214,70 @@ class OnlineUpdater:
         return self.run_magnet_layer(residual_nrmse=e)
 
     def run_magnet_layer(self, residual_nrmse: float | None = None) -> Publication | None:
-        ta, a, ach = self._series(TOPIC_VEHICLE_ACCEL)
-        tg, g, gch = self._series(TOPIC_VEHICLE_GAP)
-        tp, p, pch = self._series(TOPIC_VEHICLE_POSITION)
+        """Synchronous: snapshot, compute, accept."""
+        return self.accept_magnet_update(self.compute_magnet_update(self.snapshot_magnet_job(), residual_nrmse))
+
+    def snapshot_magnet_job(self) -> dict:
+        """Copies of what the magnet layer needs (buffered vehicle window, metadata, current config),
+        so ``compute_magnet_update`` can run without the caller's lock."""
+        return {"series": {tp: self._series(tp) for tp in self._buf}, "md": self.md,
+                "config": self.config() if self.nominal is not None else None}
+
+    def compute_magnet_update(self, job: dict, residual_nrmse: float | None = None) -> dict | None:
+        """The magnet layer on a snapshot (long; touches no state). Returns a result for
+        ``accept_magnet_update`` or None."""
+        md, cfg = job["md"], job["config"]
+        ta, a, ach = job["series"][TOPIC_VEHICLE_ACCEL]
+        tg, g, gch = job["series"][TOPIC_VEHICLE_GAP]
+        tp, p, pch = job["series"][TOPIC_VEHICLE_POSITION]
+        if md is None or cfg is None:
+            return {"log": "magnet layer: no metadata yet"}
         if ta is None or tg is None or tp is None or "position_m" not in pch or "speed_mps" not in pch:
-            self.log.append("magnet layer: vehicle accel/gap/position not buffered")
-            return None
-        sens = self.md.sensors
+            return {"log": "magnet layer: vehicle accel/gap/position not buffered"}
+        sens = md.sensors
         ma = {sens[c].magnet: i for i, c in enumerate(ach) if c in sens and sens[c].magnet}
         mg = {sens[c].magnet: i for i, c in enumerate(gch) if c in sens and sens[c].magnet}
         mags = sorted(set(ma) & set(mg))
-        pos, spd = p[:, pch.index("position_m")], p[:, pch.index("speed_mps")]
+        spd = p[:, pch.index("speed_mps")]
         if not mags or np.median(spd) <= 0.1:
             return None
+        from types import SimpleNamespace as NS
         lo, hi = max(ta[0], tg[0], tp[0]), min(ta[-1], tg[-1], tp[-1])
         keep = (ta >= lo) & (ta <= hi)
-        t = ta[keep] - ta[keep][0]
-        A = a[keep][:, [ma[m] for m in mags]]
-        G = np.stack([np.interp(ta[keep], tg, g[:, mg[m]]) for m in mags], axis=1)
-        X, V = np.interp(ta[keep], tp, pos), np.interp(ta[keep], tp, spd)
-        cfg = self.config()
-        line = self.md.raw["line"]
-        xr, rr, method = pass_irregularity(t, A, G, X, V, self.md, mags, cfg, line)
-        fs = 1.0 / float(np.median(np.diff(t)))
-        k = max(1, int(fs // self.magnet_fs_hz))
-        sel = np.arange(0, t.size, k)
-        dt = 1.0 / fs
-        rel = t[sel] - t[sel][0] + dt
-        ev = PassEvidence(rel, A[sel], tuple(mags), np.concatenate([[0.0], rel]), np.concatenate([[V[sel][0]], V[sel]]),
-                          float(X[sel][0] - V[sel][0] * dt), xr, rr, "online window")
+        keep_p = (tp >= lo - 1.0) & (tp <= hi + 1.0)
+        fs = 1.0 / float(np.median(np.diff(ta[keep])))
+        acc = NS(time_s=ta[keep], data=a[keep], channels=tuple(ach), sample_rate_hz=fs)
+        gap = NS(time_s=tg, data=g, channels=tuple(gch), sample_rate_hz=None)
+        posd = p[keep_p][:, [pch.index("position_m"), pch.index("speed_mps")]]
+        pos = NS(time_s=tp[keep_p], data=posd, channels=("position_m", "speed_mps"), sample_rate_hz=None,
+                 channel=lambda n, _d=posd: _d[:, ("position_m", "speed_mps").index(n)])
+        pairs = {m: [ach[ma[m]], gch[mg[m]]] for m in mags}
+        rec = PassRecording(acc, gap, pos, tuple(mags), None, {"channel_pairs": pairs}, md, "online window")
+        line = md.raw["line"]
+        logs: list[str] = []
+        ev = pass_evidence(rec, cfg, line, magnet_fs_hz=self.magnet_fs_hz, log=logs.append)
         up = self.magnet_layer.fit(cfg, line, [ev])
+        t = ta[keep] - ta[keep][0]
+        data_used = {"kind": "vehicle window", "t0_s": float(ta[keep][0]), "duration_s": float(t[-1]),
+                     "magnets": mags, "irregularity": rec.info["irregularity"]["method"],
+                     "irregularity_failure": rec.info["irregularity"].get("reason"),
+                     "residual_nrmse": residual_nrmse}
+        return {"update": up, "data_used": data_used, "log": "; ".join(logs) or None}
+
+    def accept_magnet_update(self, result: dict | None) -> Publication | None:
+        if result is None:
+            return None
+        if result.get("log"):
+            self.log.append(result["log"])
+        up = result.get("update")
+        if up is None:
+            return None
         if not up.nrmse_updated < up.nrmse_nominal:     # "nominal" of the layer = the current gains
             self.log.append(f"magnet update rejected: NRMSE {up.nrmse_updated:.3f} >= {up.nrmse_nominal:.3f}")
             return None
         params = {n: {"value": float(v), "unit": UNITS[n], "std": None if s is None else float(s),
                       "identifiable": bool(ok)} for n, v, s, ok in zip(up.names, up.values, up.std, up.identifiable)}
-        data_used = {"kind": "vehicle window", "t0_s": float(ta[keep][0]), "duration_s": float(t[-1]),
-                     "magnets": mags, "irregularity": method, "residual_nrmse": residual_nrmse}
         fit = {"layer": "magnet", "nrmse_before": up.nrmse_nominal, "nrmse_after": up.nrmse_updated,
                "combinations": [c.to_dict() for c in up.identifiability.combinations if c.identifiable],
-               "n_model_evaluations": up.n_model_evaluations}
-        return self._accept(params, data_used, fit)
+               "uncertainty": up.uncertainty, "n_model_evaluations": up.n_model_evaluations}
+        return self._accept(params, result["data_used"], fit)

@@ -15,13 +15,17 @@ Choices (the paper's text is vague here):
   /testline/guideway/displacement channel on the instrumented span, low-passed below the first
   mode, against the magnets' static forces of the twin's vehicle (``levitation.build_vehicle``,
   they depend on the vehicle design only, not on the gains) at the measured positions.
-- Irregularity for the magnet layer (``pass_irregularity``): ``irregularity.twin_input.
-  profile_for_twin`` (loaded -> unloaded with the twin's predicted deflection) when that module is
-  installed, else the inertial fallback ``magnet_layer.irregularity_from_signals`` with the
-  quasi-static deflection under the static magnet forces subtracted. Both use the measured,
-  anti-alias-filtered gap and acceleration, so the filter delay appears as a position shift of the
-  profile and the twin driven by it reproduces the measured (delayed) accelerations.
-- The magnet layer compares accelerations at <= ``magnet_fs_hz`` (every k-th measured sample).
+- Irregularity for the magnet layer (``pass_evidence``): ``irregularity.twin_input.profile_for_twin``
+  (loaded -> unloaded with the twin's predicted deflection), built ONCE per pass with the
+  guideway-updated twin and the nominal gains (not per candidate gain set; the gains enter the
+  profile only through the dynamic part of the girder deflection). Time high-pass ``highpass_hz``
+  1 Hz (a pass needs >= ~5 s of record; the profiler trims 1.5/f_c at both ends). No sensor delay
+  is known from the metadata, so the profile is shifted by speed x delay, which the twin driven by
+  it reproduces (harmless here). If ``profile_for_twin`` raises, the failure is logged and
+  recorded in the pass's provenance (``irregularity.reason``) and only then the demoted inertial
+  fallback ``magnet_layer.irregularity_from_signals`` is used.
+- Compared: each magnet while it is over the valid profile (taper + 1 m margin), band-passed to
+  the profile's band, at <= ``magnet_fs_hz`` (every k-th measured sample after the band-pass).
 """
 from __future__ import annotations
 
@@ -41,7 +45,7 @@ from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config
 from maglev_ros.updating.guideway_layer import (GuidewayLayer, GuidewayUpdate, ModalTarget, SpanModel,
                                                 StaticTarget, mac)
 from maglev_ros.updating.magnet_layer import (MagnetLayer, MagnetModel, MagnetUpdate, PassEvidence,
-                                              irregularity_from_signals, nrmse)
+                                              irregularity_from_signals, make_evidence, nrmse)
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, SYMBOLS, UNITS
 
 PARAMS_SCHEMA = "maglev-params/1"
@@ -216,28 +220,11 @@ def static_magnet_forces(config: TwinConfig) -> np.ndarray:
     return np.asarray(build_vehicle(config).levitation.static_force_n, float)
 
 
-def pass_irregularity(t, accel, gap, position_m, speed_mps, md: Metadata, magnets, config: TwinConfig, line,
-                      use_twin_input: bool = True, deflection_iterations: int = 2,
-                      lowpass_hz: float | None = 60.0) -> tuple[np.ndarray, np.ndarray, str]:
-    """Unloaded irregularity (x, r, method) for the twin from one pass (see module docstring)."""
-    offs_all = md.magnet_offsets_m
-    offs = [offs_all[m - 1] for m in magnets]
-    if use_twin_input:
-        try:
-            from maglev_ros.irregularity import twin_input   # another helper's module, may be absent
-        except ImportError:
-            twin_input = None
-        if twin_input is not None:
-            try:
-                out = twin_input.profile_for_twin(accel, gap, position_m, {"magnet_offsets_m": offs,
-                                                                           "nominal_gap_m": md.nominal_gap_m,
-                                                                           "time_s": t, "speed_mps": speed_mps},
-                                                  config, line)
-                x, r = _xy(out)
-                return x, r, "irregularity.twin_input.profile_for_twin"
-            except Exception:           # interface mismatch: fall back (recorded in the provenance)
-                pass
+def _fallback_irregularity(t, accel, gap, position_m, speed_mps, md: Metadata, magnets, config: TwinConfig, line,
+                           deflection_iterations: int = 2, lowpass_hz: float | None = 60.0):
+    """(x, r) of the demoted inertial fallback (``magnet_layer.irregularity_from_signals``)."""
     from maglev_ros.twin.guideway import Guideway
+    offs = [md.magnet_offsets_m[m - 1] for m in magnets]
     num = config.numerics
     modal = Guideway(line_spans(line, config), num.n_elements_per_span).modes(num.mode_cutoff_hz, num.min_modes_per_span)
     F = static_magnet_forces(config)[[m - 1 for m in magnets]]
@@ -247,8 +234,7 @@ def pass_irregularity(t, accel, gap, position_m, speed_mps, md: Metadata, magnet
     for _ in range(max(0, int(deflection_iterations))):
         w = twin_rail_deflection(config, line, t, position_m, speed_mps, (x, r), magnets)
         x, r = irregularity_from_signals(t, accel, gap, position_m, offs, g0, deflection_m=w, lowpass_hz=lowpass_hz)
-    return x, r, (f"inertial fallback (magnet_layer.irregularity_from_signals; girder deflection removed: "
-                  f"quasi-static, then {deflection_iterations} twin-predicted iteration(s))")
+    return x, r
 
 
 def twin_rail_deflection(config: TwinConfig, line, t, position_m, speed_mps, irregularity, magnets) -> np.ndarray:
@@ -274,31 +260,81 @@ def twin_rail_deflection(config: TwinConfig, line, t, position_m, speed_mps, irr
     return np.stack(out, axis=1)
 
 
-def _xy(out):
-    if isinstance(out, tuple) and len(out) >= 2:
-        return np.asarray(out[0], float), np.asarray(out[1], float)
-    for xa, ra in (("position_m", "irregularity_m"), ("x_m", "r_m"), ("x_m", "irregularity_m"), ("position_m", "elevation_m")):
-        if hasattr(out, xa) and hasattr(out, ra):
-            return np.asarray(getattr(out, xa), float), np.asarray(getattr(out, ra), float)
-    raise TypeError("unknown profile_for_twin result")
+def _runs(mask: np.ndarray, x: np.ndarray) -> list[tuple[float, float]]:
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    return [(float(x[i0]), float(x[i1 - 1])) for i0, i1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
 
 
 @dataclass(frozen=True)
 class PassRecording:
-    """What a pass bag gives the updater: magnet-layer evidence, optional static target, info."""
-    evidence: PassEvidence
+    """What a pass bag gives the updater: the vehicle channels, optional static target, info."""
+    accel: Any
+    gap: Any
+    position: Any
+    magnets: tuple[int, ...]
     static: StaticTarget | None
     info: dict
     md: Metadata
+    label: str = ""
 
 
-def read_pass(path: str | Path, config: TwinConfig | None = None, line=None, skip_s: float = 0.3,
-              magnet_fs_hz: float = 500.0, max_window_s: float | None = None,
-              use_twin_input: bool = True) -> PassRecording:
-    """Read a pass bag into magnet-layer evidence (+ the quasi-static deflection target when the bag
-    has /testline/guideway/displacement on the instrumented span). ``config``: the twin config the
-    irregularity reconstruction uses (default: the bag's nominal design)."""
+def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_fs_hz: float = 500.0,
+                  max_window_s: float | None = None, highpass_hz: float = 1.0, skip_s: float = 0.3,
+                  use_twin_input: bool = True, log=None) -> PassEvidence:
+    """Magnet-layer evidence of one pass with the irregularity for the twin ``config`` (the
+    guideway-updated twin; built once, see module docstring). Records the method in
+    ``rec.info["irregularity"]``; a failure of ``profile_for_twin`` is logged and recorded there
+    before the fallback is used."""
+    say = log or (lambda s: None)
+    md = rec.md
+    line = md.raw["line"] if line is None else line
+    acc, gap, pos = rec.accel, rec.gap, rec.position
+    mags = list(rec.magnets)
+    ca = [acc.channels.index(rec.info["channel_pairs"][m][0]) for m in mags]
+    cg = [gap.channels.index(rec.info["channel_pairs"][m][1]) for m in mags]
+    t = np.asarray(acc.time_s, float)
+    a = np.asarray(acc.data, float)[:, ca]
+    x_pos = np.interp(t, pos.time_s, pos.channel("position_m"))
+    v_pos = np.interp(t, pos.time_s, pos.channel("speed_mps"))
+    offs = md.magnet_offsets_m
+    reason = None
+    if use_twin_input:
+        from maglev_ros.irregularity.twin_input import profile_for_twin
+        try:
+            ti = profile_for_twin(acc, gap, pos, md, config, line, highpass_hz=highpass_hz,
+                                  channel_pairs=rec.info["channel_pairs"])
+        except (UserError, ValueError, np.linalg.LinAlgError) as exc:
+            reason = f"{type(exc).__name__}: {exc}"
+            say(f"{rec.label}: irregularity.twin_input.profile_for_twin failed ({reason}); "
+                f"using the inertial fallback")
+        else:
+            fs = float(acc.sample_rate_hz or 1.0 / np.median(np.diff(t)))
+            v_max = float(np.nanmax(np.abs(v_pos)))
+            band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
+            rec.info["irregularity"] = {"method": "irregularity.twin_input.profile_for_twin",
+                                        "config": "guideway-updated twin, nominal gains", **ti.to_dict()}
+            return make_evidence(t, a, mags, pos.time_s, pos.channel("position_m"), pos.channel("speed_mps"),
+                                 ti.as_twin_input(), offs, valid_range_m=_runs(ti.valid, ti.position_m),
+                                 band_hz=band, model_fs_hz=magnet_fs_hz, skip_s=skip_s,
+                                 margin_m=ti.taper_m + 1.0, max_window_s=max_window_s, label=rec.label,
+                                 irregularity_method="profile_for_twin")
+    g = np.stack([np.interp(t, gap.time_s, np.asarray(gap.data, float)[:, j]) for j in cg], axis=1)
+    xr, rr = _fallback_irregularity(t - t[0], a, g, x_pos, v_pos, md, mags, config, line)
+    rec.info["irregularity"] = {"method": "fallback: magnet_layer.irregularity_from_signals (girder deflection "
+                                          "removed: quasi-static, then 2 twin-predicted iterations)",
+                                "reason": reason or "use_twin_input=False"}
+    return make_evidence(t, a, mags, pos.time_s, pos.channel("position_m"), pos.channel("speed_mps"), (xr, rr), offs,
+                         band_hz=(0.5, 60.0), model_fs_hz=magnet_fs_hz, skip_s=skip_s, margin_m=0.5,
+                         max_window_s=max_window_s, label=rec.label, irregularity_method="fallback")
+
+
+def read_pass(path: str | Path, config: TwinConfig | None = None) -> PassRecording:
+    """Read a pass bag: vehicle accel/gap/position, the magnets with both channels, and the
+    quasi-static deflection target when the bag has /testline/guideway/displacement on the
+    instrumented span (``config``: the twin whose static magnet forces are used; default nominal)."""
     from maglev_ros.bag_reader import BagReader
+    from maglev_ros.irregularity.profile import magnet_channel_pairs
     path = Path(path)
     with BagReader(path) as r:
         md = r.metadata
@@ -313,40 +349,21 @@ def read_pass(path: str | Path, config: TwinConfig | None = None, line=None, ski
         acc, gap, pos = (r.read_topic(tp) for tp in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
         disp = r.read_topic(TOPIC_GUIDEWAY_DISP) if TOPIC_GUIDEWAY_DISP in r.topics else None
     cfg = config if config is not None else twin_config_from_metadata(md.raw)
-    line = md.raw["line"] if line is None else line
     for ch in ("position_m", "speed_mps"):
         if ch not in pos.channels:
             raise UserError(f"{path}: topic {TOPIC_VEHICLE_POSITION}: channel {ch} missing (channels: {', '.join(pos.channels)})")
-    sens = md.sensors
-    mag_a = {sens[c].magnet: i for i, c in enumerate(acc.channels) if c in sens and sens[c].magnet is not None}
-    mag_g = {sens[c].magnet: i for i, c in enumerate(gap.channels) if c in sens and sens[c].magnet is not None}
-    mags = sorted(set(mag_a) & set(mag_g))
+    pairs = magnet_channel_pairs(md, tuple(acc.channels), tuple(gap.channels)) or {}
+    mags = sorted(pairs)
     if not mags:
         raise UserError(f"{path}: no magnet has both an acceleration ({TOPIC_VEHICLE_ACCEL}) and a gap "
                         f"({TOPIC_VEHICLE_GAP}) channel with metadata sensors.<id>.magnet")
     if max(mags) > len(md.magnet_offsets_m):
         raise UserError(f"{path}: metadata key vehicle.magnet_offsets_m: {len(md.magnet_offsets_m)} offsets but magnet {max(mags)} is recorded")
+    sens = md.sensors
     t0 = float(acc.time_s[0])
-    t = acc.time_s - t0
-    a = acc.data[:, [mag_a[m] for m in mags]]
-    g = np.stack([np.interp(acc.time_s, gap.time_s, gap.data[:, mag_g[m]]) for m in mags], axis=1)
-    x_pos = np.interp(acc.time_s, pos.time_s, pos.channel("position_m"))
-    v_pos = np.interp(acc.time_s, pos.time_s, pos.channel("speed_mps"))
-    xr, rr, method = pass_irregularity(t, a, g, x_pos, v_pos, md, mags, cfg, line, use_twin_input)
-    fs = float(acc.sample_rate_hz)
-    k = max(1, int(math.floor(fs / magnet_fs_hz + 1e-9)))
-    sel = np.arange(0, t.size, k)
-    if max_window_s is not None:
-        sel = sel[t[sel] <= float(max_window_s)]
-    dt = 1.0 / fs
-    ts = t[sel]
-    rel = ts - ts[0] + dt
-    ev = PassEvidence(rel, a[sel], tuple(mags), np.concatenate([[0.0], rel]),
-                      np.concatenate([[v_pos[sel][0]], v_pos[sel]]), float(x_pos[sel][0] - v_pos[sel][0] * dt),
-                      xr, rr, path.name)
+    info = {"bag": str(path), "magnets": mags, "fs_hz": float(acc.sample_rate_hz),
+            "duration_s": float(acc.time_s[-1] - t0), "channel_pairs": {m: list(pairs[m]) for m in mags}}
     static = None
-    info = {"bag": str(path), "magnets": mags, "fs_hz": fs, "magnet_fs_hz": fs / k, "duration_s": float(ts[-1] - ts[0]),
-            "irregularity": method}
     if disp is not None:
         try:
             span = instrumented_span(md, cfg)
@@ -360,20 +377,22 @@ def read_pass(path: str | Path, config: TwinConfig | None = None, line=None, ski
             static = static_target(disp.time_s - t0, disp.channel(c), pos.time_s - t0, pos.channel("position_m"),
                                    md.magnet_offsets_m, static_magnet_forces(cfg), sens[c].position_m)
             info["static_displacement_channel"] = c
-    return PassRecording(ev, static, info, md)
+    return PassRecording(acc, gap, pos, tuple(mags), static, info, md, path.name)
 
 
-def magnet_nrmse(config: TwinConfig, line, passes: Sequence[PassEvidence], skip_s: float = 0.3) -> tuple[float, list]:
-    """Pooled NRMSE of the twin's magnet accelerations (config's gains) over passes, and the
-    per-pass (time, measured, predicted) for plots."""
+def magnet_nrmse(config: TwinConfig, line, passes: Sequence[PassEvidence], dt_max_s: float | None = 2e-3
+                 ) -> tuple[float, list]:
+    """Pooled NRMSE of the twin's compared, band-passed magnet accelerations (config's gains) over
+    passes, and the per-pass (time, measured, predicted) with NaN where not compared (plots)."""
     meas, pred, series = [], [], []
     lev = config.levitation
     for ev in passes:
-        m = MagnetModel(config, line, ev, skip_s)
-        p = m.predict([getattr(lev, n) for n in MAGNET_PARAMS])
-        meas.append(m.measured.ravel())
-        pred.append(p.ravel())
-        series.append((np.asarray(ev.time_s)[m.keep], m.measured, p))
+        m = MagnetModel(config, line, ev, dt_max_s)
+        P = m.predict_full([getattr(lev, n) for n in MAGNET_PARAMS])
+        meas.append(ev.accel_mps2[ev.compare])
+        pred.append(P[ev.compare])
+        series.append((ev.time_s - ev.time_s[0], np.where(ev.compare, ev.accel_mps2, np.nan),
+                       np.where(ev.compare, P, np.nan)))
     return nrmse(np.concatenate(pred), np.concatenate(meas)), series
 
 
@@ -407,9 +426,10 @@ class TwoLayerUpdate:
 def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
                      guideway_layer: GuidewayLayer | None = None, magnet_layer: MagnetLayer | None = None,
                      magnet_fs_hz: float = 500.0, max_window_s: float | None = None, max_modes: int = 4,
-                     use_twin_input: bool = True, log=None) -> TwoLayerUpdate:
-    """Ambient bag -> modes -> guideway layer [+ static deflection of the passes] -> magnet layer on
-    the passes (twin with the updated guideway). Returns the public document and the details."""
+                     use_twin_input: bool = True, highpass_hz: float = 1.0, log=None) -> TwoLayerUpdate:
+    """Ambient bag -> modes -> guideway layer [+ static deflection of the passes] -> irregularity of
+    each pass for the guideway-updated twin -> magnet layer on the passes. Returns the public
+    document and the details (provenance says how each pass's irregularity was obtained)."""
     t_start = time.perf_counter()
     say = log or (lambda s: None)
     md_a, modal_res, amb_info = identify_ambient(ambient)
@@ -420,7 +440,7 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
     for p in passes:
         if Path(p).resolve() == Path(ambient).resolve():
             raise UserError(f"{p}: the same bag is given as --ambient and --pass")
-        rec = read_pass(p, cfg0, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s, use_twin_input=use_twin_input)
+        rec = read_pass(p, cfg0)
         if rec.md.vehicle.get("magnet_offsets_m") is None:
             raise UserError(f"{p}: metadata key vehicle.magnet_offsets_m: missing")
         recs.append(rec)
@@ -434,28 +454,35 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
     nrmse_doc = None
     if recs:
         line = recs[0].md.raw["line"]
-        # irregularity again with the UPDATED guideway (its deflection is what is removed)
-        recs = [read_pass(p, cfg_g, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s,
-                          use_twin_input=use_twin_input) for p in passes]
-        evs = [r.evidence for r in recs]
         ml = magnet_layer or MagnetLayer()
+        # irregularity with the UPDATED guideway (its deflection is what is removed), nominal gains
+        t_irr = time.perf_counter()
+        evs = [pass_evidence(r, cfg_g, line, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s,
+                             highpass_hz=highpass_hz, use_twin_input=use_twin_input, log=say) for r in recs]
+        for r, ev in zip(recs, evs):
+            say(f"{r.label}: irregularity by {r.info['irregularity']['method']}; compared "
+                f"{', '.join(f'{s:.1f}' for s in ev.compared_s)} s per magnet in {ev.band_hz[0]:.2g}-"
+                f"{ev.band_hz[1]:.3g} Hz")
+        t_irr = time.perf_counter() - t_irr
         mag = ml.fit(cfg_g, line, evs)
         say(f"magnet layer: {mag.n_model_evaluations} coupled simulations, {mag.wall_time_s:.1f} s")
         cfg_nom = twin_config_from_metadata(recs[0].md.raw)
-        e_nom, s_nom = magnet_nrmse(cfg_nom, line, evs, ml.skip_s)
+        e_nom, s_nom = magnet_nrmse(cfg_nom, line, evs, ml.dt_max_s)
         cfg_up = updated_config(cfg_g, None, mag)
-        e_up, s_up = magnet_nrmse(cfg_up, line, evs, ml.skip_s)
+        e_up, s_up = magnet_nrmse(cfg_up, line, evs, ml.dt_max_s)
         nrmse_doc = {"nominal": e_nom, "updated": e_up}
         for ev, a, b in zip(evs, s_nom, s_up):
             series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))
     else:
         cfg_up = cfg_g
+        t_irr = 0.0
     doc = public_params(gw, mag, nrmse_doc)
     prov = {"ambient": amb_info | {"modes": tinfo}, "passes": [r.info for r in recs],
             "guideway": {"n_model_evaluations": gw.n_model_evaluations, "wall_time_s": gw.wall_time_s,
                          "used_static": gw.used_static, "surrogate_score": gw.surrogate_score},
+            "irregularity_wall_time_s": t_irr,
             "magnet": None if mag is None else {"n_model_evaluations": mag.n_model_evaluations,
-                                                "wall_time_s": mag.wall_time_s,
+                                                "wall_time_s": mag.wall_time_s, "uncertainty": mag.uncertainty,
                                                 "surrogate_score": mag.surrogate_score,
                                                 "nrmse_fit": {"nominal": mag.nrmse_nominal, "updated": mag.nrmse_updated}},
             "wall_time_s": time.perf_counter() - t_start}

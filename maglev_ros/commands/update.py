@@ -28,8 +28,11 @@ def add_arguments(p) -> None:
                    help="also write the full result (Pareto archives, identifiability, provenance)")
     p.add_argument("--max-modes", type=int, default=4, help="modes used by the guideway layer (default 4)")
     p.add_argument("--samples", type=int, default=60, help="optimal-LHS samples for the magnet-layer surrogate (default 60)")
-    p.add_argument("--polish-evals", type=int, default=40,
-                   help="max direct coupled simulations of the magnet-layer polish (default 40)")
+    p.add_argument("--polish-evals", type=int, default=8,
+                   help="max residual evaluations of the magnet-layer Levenberg-Marquardt polish on the direct "
+                        "coupled model (each iteration adds 3 for its Jacobian; default 8)")
+    p.add_argument("--swarm", type=int, nargs=2, default=None, metavar=("PARTICLES", "ITERATIONS"),
+                   help="MOPSO size of both layers (default: guideway 100 x 200, magnet 50 x 100)")
     p.add_argument("--max-window-s", type=float, default=None,
                    help="use at most this many seconds of each pass for the magnet layer (default: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of sampling and swarms (default 0)")
@@ -48,11 +51,18 @@ def run(args) -> int:
         raise UserError(f"--max-modes: expected >= 1, got {args.max_modes}")
     if args.samples < 8:
         raise UserError(f"--samples: expected >= 8, got {args.samples}")
+    if args.polish_evals < 1:
+        raise UserError(f"--polish-evals: expected >= 1, got {args.polish_evals}")
+    sw = {}
+    if args.swarm is not None:
+        if min(args.swarm) < 2:
+            raise UserError(f"--swarm: expected PARTICLES >= 2 and ITERATIONS >= 2, got {args.swarm[0]} {args.swarm[1]}")
+        sw = {"n_particles": args.swarm[0], "n_iterations": args.swarm[1]}
     log = None if args.quiet else (lambda s: print(s, flush=True))
     up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
-                          guideway_layer=GuidewayLayer(seed=args.seed),
+                          guideway_layer=GuidewayLayer(seed=args.seed, **sw),
                           magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
-                                                   seed=args.seed), log=log)
+                                                   seed=args.seed, **sw), log=log)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         raise UserError(f"--out: directory {out.parent} does not exist")

@@ -108,7 +108,6 @@ class UpdaterNode(Node):
             if e is None:
                 return
             self.core._res.clear()
-
             job = self.core.snapshot_magnet_job()      # copies of the buffers + current parameters
 
         def work():

@@ -33,9 +33,10 @@ A short pass (< ~3 s of comparable samples per magnet) leaves that direction to 
 Uncertainty (model error included): the residual is NOT white measurement noise (the profile
 carries the gap-sensor and integrated accelerometer noise into the model input, the profile is
 band-limited, ...). So the covariance is the sandwich A^-1 B A^-1 with A = J^T J and B the
-cluster-robust score covariance over time blocks of ``block_s`` (all magnets of a block in one
-cluster; blocks longer than the residual correlation time), B = nb/(nb-1) sum_b g_b g_b^T,
-g_b = J_b^T r_b: the scatter of the per-block gradients IS the scatter the model error causes.
+long-run covariance of the score series S_t = sum_magnets J_t r_t (Newey-West, Bartlett weights
+up to ``block_s`` seconds of lag, about the period of the band's low corner; a cluster version
+over 1 s blocks was tried first: with 3-10 blocks per pass it scattered by a factor ~2): the
+scatter of the residual's projection on the sensitivities IS the scatter the model error causes.
 A gain is flagged identifiable when its relative std <= ``max_rel_std`` (default 2.5 %: +-5 % at
 2 sigma). The principal directions of that covariance are reported as log-linear combinations.
 Why by hand: LM polish is scipy's; the sandwich and the combinations are a few lines of algebra
@@ -203,16 +204,30 @@ class MagnetModel:
         return self.predict_full(values, static_current_a)[self.ev.compare]
 
 
-def sandwich_cov(J: np.ndarray, r: np.ndarray, block: np.ndarray) -> tuple[np.ndarray, int]:
-    """Cluster-robust covariance A^-1 B A^-1 of a least-squares estimate (see module docstring).
-    ``block``: cluster id of each residual. Returns (cov, number of blocks)."""
+def sandwich_cov(J: np.ndarray, r: np.ndarray, series: np.ndarray, time_index: np.ndarray,
+                 max_lag: int) -> tuple[np.ndarray, int]:
+    """Heteroscedasticity-and-autocorrelation-consistent sandwich A^-1 B A^-1 (Newey-West, Bartlett
+    weights up to ``max_lag`` samples) of a least-squares estimate. The score of time sample t of a
+    series is S_t = sum over its magnets of J_i r_i; B = sum_l w_l (Gamma_l + Gamma_l^T) over the
+    series (passes; independent of each other). Returns (cov, max_lag)."""
     A = J.T @ J
-    ids = np.unique(block)
-    G = np.array([J[block == b].T @ r[block == b] for b in ids])
-    nb = len(ids)
-    B = (G - G.mean(axis=0)).T @ (G - G.mean(axis=0)) * nb / max(nb - 1, 1)
+    p = J.shape[1]
+    B = np.zeros((p, p))
+    for sid in np.unique(series):
+        sel = series == sid
+        ti = time_index[sel]
+        n = int(ti.max()) + 1
+        S = np.zeros((n, p))
+        np.add.at(S, ti, J[sel] * r[sel, None])
+        S -= S.mean(axis=0)
+        L = int(min(max_lag, n - 1))
+        nfft = 1 << int(np.ceil(np.log2(2 * n)))
+        F = np.fft.rfft(S, nfft, axis=0)
+        G = np.fft.irfft(F[:, :, None] * np.conj(F[:, None, :]), nfft, axis=0)   # G[l] = sum_t S_{t+l} S_t^T
+        w = 1.0 - np.arange(L + 1) / (L + 1.0)
+        B += G[0] + np.einsum("l,lij->ij", w[1:], G[1:L + 1] + np.transpose(G[1:L + 1], (0, 2, 1)))
     Ai = np.linalg.pinv(A)
-    return Ai @ B @ Ai, nb
+    return Ai @ B @ Ai, max_lag
 
 
 @dataclass(frozen=True)
@@ -261,7 +276,7 @@ class MagnetLayer:
 
     ``n_samples``: optimal-LHS direct simulations for the surrogate; ``polish_max_nfev``: LM
     iterations' residual evaluations on the direct model (each iteration adds 3 for the Jacobian);
-    ``block_s``: cluster length of the sandwich covariance; ``max_rel_std``: identifiable when the
+    ``block_s``: maximal lag [s] of the sandwich covariance; ``max_rel_std``: identifiable when the
     relative std is at most this; ``dt_max_s``: the twin's internal step for the layer."""
 
     def __init__(self, rel_range: float = 0.45, use_surrogate: bool = True, n_samples: int = 60,
@@ -285,9 +300,9 @@ class MagnetLayer:
         space = magnet_space(config, self.rel_range)
         models = [MagnetModel(config, line, p, self.dt_max_s) for p in passes]
         meas = np.concatenate([m.measured for m in models])
-        # cluster id of each compared sample: (pass, time block)
-        block = np.concatenate([i * 100000 + np.floor((m.ev.time_s[m.rows] - m.ev.time_s[0]) / self.block_s)
-                                for i, m in enumerate(models)])
+        series = np.concatenate([np.full(m.rows.size, i) for i, m in enumerate(models)])
+        tindex = np.concatenate([m.rows for m in models])
+        lag = int(math.ceil(max(self.block_s * m.ev.fs_hz for m in models)))
 
         def predict_all(values, i0=None):
             return np.concatenate([m.predict(values, i0) for m in models])
@@ -350,7 +365,7 @@ class MagnetLayer:
         r_opt = residual(theta)
         J = jac(theta)
         # ---- uncertainty: sandwich (cluster-robust over time blocks) ----------------------------
-        cov, nb = sandwich_cov(J, r_opt, block)
+        cov, nb = sandwich_cov(J, r_opt, series, tindex, lag)
         rel = np.sqrt(np.maximum(np.diag(cov), 0.0))
         # ---- identifiability incl. the static current (exact ridge of the common scale) ----------
         i0 = config.levitation.static_current_a
@@ -383,7 +398,7 @@ class MagnetLayer:
             std = tuple(None for _ in space.names)
             identifiable = tuple(False for _ in space.names)
         sv = np.linalg.svd(J / sigma, compute_uv=False)
-        unc = {"method": "sandwich, cluster-robust over time blocks", "block_s": self.block_s, "n_blocks": nb,
+        unc = {"method": "sandwich, Newey-West (Bartlett) over time", "max_lag_s": self.block_s, "max_lag": nb,
                "rel_std": rel.tolist(), "residual_rms_mps2": sigma,
                "white_noise_rel_std": np.sqrt(np.diag(np.linalg.pinv((J / sigma).T @ (J / sigma))))
                .tolist(), "jacobian_condition": float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf"),

@@ -18,6 +18,7 @@ NODES = {
     "twin": "maglev_ros.nodes.twin:main",
     "modal_id": "maglev_ros.nodes.modal_id:main",
     "updater": "maglev_ros.nodes.updater:main",
+    "discrepancy": "maglev_ros.nodes.discrepancy:main",
 }
 
 setup(

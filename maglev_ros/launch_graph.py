@@ -22,6 +22,7 @@ GRAPHS: dict[str, list[NodeSpec]] = {
         NodeSpec("modal_id", "maglev_ros.nodes.modal_id"),
         NodeSpec("updater", "maglev_ros.nodes.updater",
                  params={"history_path": "maglev_twin_parameters.jsonl"}),
+        NodeSpec("discrepancy", "maglev_ros.nodes.discrepancy"),
         NodeSpec("twin", "maglev_ros.nodes.twin",
                  params={"irregularity_psd": "maglev_001", "irregularity_band_m": [1.0, 20.0],
                          "seed": 0, "dt_max_s": 5e-4}),

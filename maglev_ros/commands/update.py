@@ -9,6 +9,7 @@ ka) from the passes' magnet accelerations with the updated guideway. Writes the 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from maglev_ros.errors import UserError
@@ -39,6 +40,13 @@ def add_arguments(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    """Write via a temporary file and rename: a crash never leaves a half-written JSON."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def run(args) -> int:
     from maglev_ros.updating.guideway_layer import GuidewayLayer
     from maglev_ros.updating.magnet_layer import MagnetLayer
@@ -58,15 +66,17 @@ def run(args) -> int:
         if min(args.swarm) < 2:
             raise UserError(f"--swarm: expected PARTICLES >= 2 and ITERATIONS >= 2, got {args.swarm[0]} {args.swarm[1]}")
         sw = {"n_particles": args.swarm[0], "n_iterations": args.swarm[1]}
+    out = Path(args.out)
+    # check the outputs before minutes of computation, not after
+    for path, what in ((out.parent, "--out"), (Path(args.details).parent if args.details else None, "--details")):
+        if path is not None and str(path) and not path.is_dir():
+            raise UserError(f"{what}: directory {path} does not exist")
     log = None if args.quiet else (lambda s: print(s, flush=True))
     up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
                           guideway_layer=GuidewayLayer(seed=args.seed, **sw),
                           magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
                                                    seed=args.seed, **sw), log=log)
-    out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise UserError(f"--out: directory {out.parent} does not exist")
-    out.write_text(json.dumps(up.document, indent=1))
+    _write_atomic(out, json.dumps(up.document, indent=1))
     doc = up.document
     if log:
         fm, fn, fu = (doc["frequencies_hz"][k] for k in ("measured", "nominal", "updated"))

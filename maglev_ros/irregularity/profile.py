@@ -483,8 +483,10 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
             kind) -> IrregularityResult:
     dx = cfg.spacing_m
     if acc.j0 is None or acc.n == 0:
+        fc = cfg.highpass_hz
         raise UserError("vehicle recording: no valid magnet samples left (dropouts, stops or "
-                        "segments shorter than the filter needs)")
+                        f"clean stretches shorter than the ~{2 * cfg.edge_s + 2 / fc:.0f} s that a "
+                        f"{fc:g} Hz high-pass needs; a higher --highpass-hz shortens it)")
     pos = (acc.j0 + np.arange(acc.n)) * dx
     warns = list(warns)
     if lam_max <= lam_min * 1.5:

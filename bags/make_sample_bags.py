@@ -3,14 +3,18 @@
 
     .venv/bin/python bags/make_sample_bags.py [--out-dir bags]
 
-- bags/paper_pass     ``paper`` scenario: one pass at 25 km/h over span S3 of a 5-span line,
-                      10 vertical guideway accelerations + midspan displacement at 2 kHz, 4 magnet
-                      accelerations and gaps at 2 kHz, position/speed at 200 Hz, 2 s lead-in, 6 s
-                      free decay (~12.7 s).
+- bags/paper_pass     ``paper-field`` scenario, seed 1: one pass at 25 km/h over span S3 of a
+                      5-span line, 10 vertical guideway accelerations + midspan displacement at
+                      2 kHz, 4 magnet accelerations and gaps at 2 kHz, position/speed at 200 Hz,
+                      2 s lead-in, 6 s free decay (~12.7 s).
+- bags/paper_pass2    ``paper-field`` scenario, seed 3, 30 km/h: the held-out pass for
+                      ``maglev-ros diagnose`` (another irregularity stretch, another speed).
 - bags/paper_ambient  ``paper-ambient`` scenario: 120 s of ambient vibration, the same 10 guideway
                       accelerations at 500 Hz.
-Each bag gets ``<bag>.truth.json`` (hidden truth: never read by the nodes) and the pass also
-``<bag>.irregularity.csv``.
+The two passes conceal ONE physical effect that the nominal twin lacks (which one: see the
+``effects`` of <bag>.truth.json, or maglev_ros/config/scenarios/paper-field.yaml; the bags'
+metadata does not say). Each bag gets ``<bag>.truth.json`` (hidden truth: never read by the
+nodes) and the passes also ``<bag>.irregularity.csv``.
 """
 import argparse
 import sys
@@ -21,7 +25,10 @@ sys.path.insert(0, str(HERE.parent))
 
 from maglev_ros.twin.simulate import simulate  # noqa: E402
 
-SAMPLES = {"paper_pass": ("paper", 1), "paper_ambient": ("paper-ambient", 2)}
+# name: (scenario, seed, --set overrides)
+SAMPLES = {"paper_pass": ("paper-field", 1, ()),
+           "paper_pass2": ("paper-field", 3, ("speed_mps=8.333",)),
+           "paper_ambient": ("paper-ambient", 2, ())}
 
 
 def bag_size(path: Path) -> int:
@@ -33,8 +40,8 @@ def main() -> int:
     ap.add_argument("--out-dir", default=str(HERE))
     args = ap.parse_args()
     out_dir = Path(args.out_dir)
-    for name, (scenario, seed) in SAMPLES.items():
-        res = simulate(scenario, out_dir / name, seed=seed, overwrite=True)
+    for name, (scenario, seed, sets) in SAMPLES.items():
+        res = simulate(scenario, out_dir / name, sets=sets, seed=seed, overwrite=True)
         print(f"{res.bag}: {res.kind}, {res.duration_s:.1f} s, {bag_size(Path(res.bag)) / 1e6:.2f} MB")
     return 0
 

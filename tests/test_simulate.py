@@ -268,7 +268,9 @@ def test_cli_simulate_and_one_line_errors(tmp_path):
 
 def test_sample_bags_are_small_and_clean():
     bags = ROOT / "bags"
-    for name, limit in (("paper_pass", 8e6), ("paper_ambient", 4e6)):
+    total = sum(f.stat().st_size for f in bags.rglob("*") if f.is_file())
+    assert total < 10e6, f"bags/ holds {total / 1e6:.1f} MB"
+    for name, limit in (("paper_pass", 8e6), ("paper_pass2", 8e6), ("paper_ambient", 4e6)):
         b = bags / name
         if not b.exists():
             pytest.skip(f"{b} not generated (run bags/make_sample_bags.py)")

@@ -22,6 +22,7 @@ from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare,
 from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
 from .localize import Mismatch, mismatches, residual_map
 from .model import CAL_NAMES, CAL_PARAMS, ModelSpec, base_spec, guideway_modal, predict
+from .irregularity import with_twin_irregularity
 from .recording import Recording, require_pass
 
 SCHEMA = "maglev-diagnosis/1"
@@ -35,6 +36,9 @@ class DiagnoseConfig:
     base_max_nfev: int = 6
     dropout_min_s: float = 0.1
     dt_max_s: float | None = None     # integration step of the diagnosing twin (None: design numerics)
+    irregularity: bool = True         # drive the twin with the irregularity reconstructed from each pass
+    irregularity_highpass_hz: float = 0.8
+    base_refit_nfev: int = 4          # calibration steps after the irregularity is rebuilt
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,15 +78,29 @@ class Diagnoser:
             require_pass(p)
         cfg = self.config
         base0 = base_spec(passes[0].metadata, cfg.n_elements).with_(dt_max_s=cfg.dt_max_s)
-        train_recs, test_recs = [passes[0]], list(passes[1:]) or [passes[0]]
         same_heldout = len(passes) == 1
-        rd_train = [prepare(r, base0) for r in train_recs]
-        rd_test = rd_train if same_heldout else [prepare(r, base0) for r in test_recs]
+        notes: list[str] = []
+        raw_passes = list(passes)
+
+        def prepared(spec):
+            ps = list(raw_passes)
+            if cfg.irregularity:
+                ps = [with_twin_irregularity(p, spec, highpass_hz=cfg.irregularity_highpass_hz,
+                                             log=notes.append) for p in raw_passes]
+            tr = [prepare(ps[0], spec)]
+            te = tr if same_heldout else [prepare(r, spec) for r in ps[1:]]
+            return ps, tr, te
+        # the irregularity of each pass drives the twin: reconstructed with the nominal twin for a
+        # first calibration, then ONCE more with the calibrated twin (kept for every hypothesis)
+        passes, rd_train, rd_test = prepared(base0)
+        base = fit_base(base0, rd_train, cfg.base_max_nfev)
+        if cfg.irregularity and any(p.irregularity is not None for p in passes):
+            passes, rd_train, rd_test = prepared(base.spec)
+            base = fit_base(base.spec, rd_train, cfg.base_refit_nfev)
         rd_all = rd_train + ([] if same_heldout else rd_test)
         rd_amb = prepare(ambient, base0) if ambient is not None else None
         # dropouts are a data fact: detected, then modelled on every recording
         drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, cfg.dropout_min_s)]
-        base = fit_base(base0, rd_train, cfg.base_max_nfev)
         nr_before, pc_before = fit_report(base.spec, rd_all)
         # ---- localize
         maps = [residual_map(rd, model_powers(base.spec, rd)) for rd in rd_all]
@@ -199,6 +217,10 @@ class Diagnoser:
         }
         if disc:
             report["discovery"] = [d for d in disc]
+        groups = {n: c.group for rd in rd_all for n, c in rd.rec.channels.items()}
+        for key, pc in (("fit_before", pc_before), ("fit_after", pc_after)):
+            report[key]["per_group"] = _per_group(pc, groups)
+        report["irregularity"] = [_irregularity_summary(p) for p in passes] + [{"note": n} for n in notes]
         extras = {"rd_all": rd_all, "maps_before": maps, "maps_after": maps_after, "base_spec": base.spec,
                   "final_spec": final_spec, "fits": fits, "rd_ambient": rd_amb, "discovery": disc,
                   "heldout_is_training": same_heldout}
@@ -260,6 +282,26 @@ class Diagnoser:
                 "parameters": params,
                 "evidence": {"heldout_nrmse_before": v.heldout_before, "heldout_nrmse_after": v.heldout_after,
                              "delta_bic": float(dbic)}}
+
+
+def _per_group(per_channel: dict, groups: dict) -> dict:
+    """RMS of the per-channel NRMSE within each channel group."""
+    out: dict[str, list] = {}
+    for n, v in per_channel.items():
+        out.setdefault(groups.get(n, "other"), []).append(v)
+    return {g: float(np.sqrt(np.mean(np.square(v)))) for g, v in out.items()}
+
+
+def _irregularity_summary(rec: Recording) -> dict:
+    """How the twin was driven on one pass (JSON-ready)."""
+    if rec.irregularity is None:
+        return {"source": rec.source, "method": "none (perfect guideway)"}
+    info = rec.irregularity_info or {}
+    return {"source": rec.source, "method": "irregularity.twin_input.profile_for_twin (calibrated twin)",
+            "valid_m": list(rec.irregularity_valid_m), "sensor_delay_s": rec.sensor_delay_s,
+            "rms_m": info.get("rms_m"), "iterations": info.get("iterations"),
+            "converged": info.get("converged"), "band": {k: info.get("band", {}).get(k) for k in
+                                                         ("min_wavelength_m", "max_wavelength_m", "highpass_hz")}}
 
 
 def base_spec_spans(spec: ModelSpec):

@@ -17,6 +17,7 @@ from scipy import stats
 
 from .features import FrameGrid, band_powers, frame_grid, nrmse_amplitude, usable_bands
 from .model import ModelSpec, guideway_modal, predict, reference_value
+from .irregularity import vehicle_over_valid
 from .recording import Recording
 
 QUIET_REL = 1e-3
@@ -62,6 +63,16 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
     for n, ch in rec.channels.items():
         pm[n] = band_powers(ch.time_s, ch.values - refs[n], ch.sample_rate_hz, grid)
         masks[n] = usable_bands(grid, ch.sample_rate_hz)
+    # vehicle channels: only frames with the whole vehicle over the valid irregularity (outside
+    # it the twin input is zero); excluded frames are NaN and drop out of every measure
+    if rec.irregularity_valid_m is not None:
+        offs = base.config.vehicle.magnet_offsets_m
+        t_lo = grid.t_center_s - grid.frame_s / 2
+        t_hi = grid.t_center_s + grid.frame_s / 2
+        ok = vehicle_over_valid(rec, t_lo, offs) & vehicle_over_valid(rec, t_hi, offs)
+        for n, ch in rec.channels.items():
+            if ch.on_vehicle:
+                pm[n][~ok] = np.nan
     rd = RecData(rec, grid, pm, masks)
     # quiet frames and noise floor from the nominal twin
     pred = predict(base, rec)
@@ -72,13 +83,20 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
         tot = np.nansum(pt, axis=1)
         quiet = tot <= QUIET_REL * max(np.nanmax(tot), 1e-300) if np.nanmax(tot) > 0 else np.ones_like(tot, bool)
         quiet &= np.all(np.isfinite(pm[n]), axis=1)
+        src = pm[n]
         if quiet.sum() < 2:
-            order = np.argsort(np.nansum(pm[n], axis=1))
+            # never quiet (vehicle channels on an irregular guideway): the floor comes from the
+            # measured-minus-twin signal in its quietest fifth of the frames (an upper bound of the
+            # noise, tighter than the measured signal itself)
+            src = band_powers(ch.time_s, ch.values - pred[n], ch.sample_rate_hz, grid)
+            src[~np.all(np.isfinite(pm[n]), axis=1)] = np.nan
+            fin = np.flatnonzero(np.all(np.isfinite(src), axis=1))
+            order = fin[np.argsort(np.sum(src[fin], axis=1))]
             quiet = np.zeros_like(quiet)
             quiet[order[:max(2, len(order) // 5)]] = True
         rd.quiet[n] = quiet
         ex = excl if ch.group.startswith("guideway") else np.zeros_like(excl)
-        rd.noise[n] = fit_noise_floor(pm[n][quiet], grid, masks[n], ex)
+        rd.noise[n] = fit_noise_floor(src[quiet], grid, masks[n], ex)
     return rd
 
 

@@ -175,10 +175,11 @@ def flexible_vehicle(model: VehicleModel, bend_hz: float, zeta: float = 0.02) ->
 
 
 def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: float,
-                  start_position_m: float, start_speed_mps: float, t0_s: float) -> TwinStepper:
+                  start_position_m: float, start_speed_mps: float, t0_s: float,
+                  irregularity=None) -> TwinStepper:
     cfg = spec.effective_config()
     spans = spec.effective_spans()
-    st = TwinStepper(cfg, spans, sensors=dict(sensors), fs_out_hz=fs_out_hz,
+    st = TwinStepper(cfg, spans, sensors=dict(sensors), irregularity=irregularity, fs_out_hz=fs_out_hz,
                      start_position_m=start_position_m, start_speed_mps=start_speed_mps,
                      t0_s=t0_s, init="rest")
     changed = False
@@ -235,7 +236,10 @@ _CACHE_MAX = 256
 
 
 def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> PassResult | None:
-    """Run the twin along ``rec``'s vehicle position (None for an ambient recording)."""
+    """Run the twin along ``rec``'s vehicle position (None for an ambient recording), driven by the
+    pass's reconstructed irregularity ``rec.irregularity`` (perfect guideway when None); the twin
+    runs ``rec.sensor_delay_s`` behind the stamps (the samples describe the physics that much
+    earlier: one delay for all sensor topics, the vehicle accel topic's)."""
     if rec.kind != "pass" or rec.position_time_s is None:
         return None
     phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
@@ -247,17 +251,21 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     sensors = {n: c.position_m for n, c in rec.channels.items()
                if c.group in ("guideway_accel", "guideway_disp") and c.position_m is not None}
     tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
-    t0 = max(rec.t0_s, float(tp[0])) - 1.0 / fs
+    tau = float(rec.sensor_delay_s)
+    t0 = max(rec.t0_s - tau, float(tp[0])) - 1.0 / fs
     st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
-                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0)
+                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0,
+                       irregularity=rec.irregularity)
     parts = []
     t = t0
-    t_end = rec.t1_s + 1.0 / fs
+    t_end = rec.t1_s - tau + 1.0 / fs
     while t < t_end - 1e-12:
         tn = min(t_end, t + 0.25)
         parts.append(st.advance(tn, float(np.interp(tn, tp, vp))))
         t = tn
     res = PassResult.concat(parts)
+    if tau:
+        res = replace(res, time_s=res.time_s + tau)
     if len(_CACHE) >= _CACHE_MAX:
         _CACHE.clear()
     _CACHE[key] = (rec, res)

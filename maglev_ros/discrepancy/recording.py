@@ -47,6 +47,14 @@ class Recording:
     position_m: np.ndarray | None = None
     speed_mps: np.ndarray | None = None
     source: str = "<memory>"
+    # guideway irregularity driving the twin on this pass (reconstructed from the pass itself,
+    # see :mod:`.irregularity`): (x_m, r_m) arrays, the stretch where it is valid [m] and the
+    # delay of the sensor samples behind their stamps (the twin's output is delayed alike)
+    irregularity: tuple | None = None
+    irregularity_valid_m: tuple[float, float] | None = None
+    irregularity_margin_m: float = 0.0
+    sensor_delay_s: float = 0.0
+    irregularity_info: Mapping | None = None
 
     @property
     def t0_s(self) -> float:

@@ -1,10 +1,4 @@
 """Online modal identification: the core driver (no ROS) and the modal_id node over a real graph."""
-import json
-import os
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,8 +7,8 @@ from maglev_ros.bag_writer import BagWriter
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
 from maglev_ros.sensor_block import Block
 from modal_data import assert_modes_match, guideway_model, simulate_ambient
+from rosgraph import replay_through_node, ros_env
 
-HERE = Path(__file__).resolve().parent
 FS = 2000.0
 
 
@@ -62,31 +56,11 @@ def test_modal_id_node_publishes_tracked_modes_from_a_replay(tmp_path, model):
             w.write_block("/testline/guideway/accel",
                           Block(t0 + int(round(i / FS * 1e9)), "guideway", FS, chans,
                                 ("m/s^2",) * len(chans), y[i:i + nb]))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(20 + os.getpid() % 40),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               PYTHONPATH=str(HERE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    out = tmp_path / "modes.json"
-    node = subprocess.Popen([sys.executable, "-m", "maglev_ros.nodes.modal_id", "--ros-args",
-                             "-p", "window_s:=20.0", "-p", "fmax_hz:=120.0"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    coll = subprocess.Popen([sys.executable, str(HERE / "ros_collect.py"), str(out), "120", "5",
-                             "maglev_msgs/msg/ModalEstimate:/maglev/modes"], env=env)
-    try:
-        time.sleep(1.0)
-        rep = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag),
-                              "--rate", "10", "--quiet", "--wait-subscribers", "2"],
-                             env=env, capture_output=True, text=True, timeout=120)
-        assert rep.returncode == 0, rep.stderr
-        coll.wait(timeout=150)
-    finally:
-        for p in (node, coll):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-    msgs = json.loads(out.read_text())["/maglev/modes"]
+    got = replay_through_node(ros_env(20), "maglev_ros.nodes.modal_id",
+                              ["-p", "window_s:=20.0", "-p", "fmax_hz:=120.0"], bag,
+                              ["maglev_msgs/msg/ModalEstimate:/maglev/modes"], tmp_path / "modes.json",
+                              rate=10, wait_subscribers=2, idle_s=5.0)
+    msgs = got["/maglev/modes"]
     stamps = np.array([m["header"]["stamp"]["sec"] + m["header"]["stamp"]["nanosec"] * 1e-9
                        for m in msgs])
     assert len(msgs) >= 7, len(msgs)                       # (36 - 20) / 2 updates, minus edges

@@ -20,6 +20,7 @@ HELP = "run the main job on the bundled sample bag: check, replay through the gr
 ORDER = 1
 SAMPLE_BAG = Path(__file__).resolve().parents[2] / "bags" / "paper_pass"
 SAMPLE_AMBIENT = Path(__file__).resolve().parents[2] / "bags" / "paper_ambient"
+SAMPLE_HELD_OUT = Path(__file__).resolve().parents[2] / "bags" / "paper_pass2"
 
 
 def add_arguments(p) -> None:
@@ -27,6 +28,9 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=float, default=2.0, help="replay rate through the graph")
     p.add_argument("--ambient", default=str(SAMPLE_AMBIENT),
                    help="ambient recording of the same line (default: bags/paper_ambient)")
+    p.add_argument("--held-out", default=str(SAMPLE_HELD_OUT),
+                   help="a second pass, held out to test the diagnosis (default: bags/paper_pass2; "
+                        "'' for none)")
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
     p.add_argument("--no-analysis", action="store_true",
                    help="stop after the replay through the graph (skip step 3)")
@@ -89,17 +93,20 @@ def run(args) -> int:
           else f"  messages missing on: {lost}")
     report = {"recording": recording, "graph": flow}
     if not args.no_analysis:
-        report["analysis"] = _analyse(args.bag, args.ambient, out)
+        report["analysis"] = _analyse(args.bag, args.ambient, args.held_out or None, out)
     (out / "demo.json").write_text(json.dumps(report, indent=1))
     print(f"== done: {out / 'demo.json'}")
     return 0 if not lost else 1
 
 
-def _analyse(bag: str, ambient: str, out: Path) -> dict:
+def _analyse(bag: str, ambient: str, held_out: str | None, out: Path) -> dict:
     """Step 3: the offline verbs on the recordings, outputs under ``out``."""
     from maglev_ros.cli import main as cli
     if not os.path.exists(ambient):
         raise UserError(f"{ambient}: no such bag (the ambient recording for the modes)")
+    if held_out and not os.path.exists(held_out):
+        raise UserError(f"{held_out}: no such bag (the held-out pass for the diagnosis)")
+    extra = ["--pass", held_out] if held_out else []
     steps = [
         ("guideway modes (ambient)", ["modes", ambient, "--json", str(out / "modes.json"),
                                       "--plot", str(out / "stabilization.png")]),
@@ -111,7 +118,7 @@ def _analyse(bag: str, ambient: str, out: Path) -> dict:
         ("model update (ambient + pass)", ["update", "--ambient", ambient, "--pass", bag,
                                            "--out", str(out / "params.json"),
                                            "--plot", str(out / "update"), "--quiet"]),
-        ("mismatch diagnosis", ["diagnose", "--ambient", ambient, "--pass", bag,
+        ("mismatch diagnosis", ["diagnose", "--ambient", ambient, "--pass", bag, *extra,
                                 "--out", str(out / "diagnosis")]),
     ]
     done = {}

@@ -33,3 +33,6 @@ def test_colcon_builds_both_packages(tmp_path):
     assert (inst / "maglev_ros" / "share" / "maglev_ros" / "launch" / "monitor.launch.py").exists()
     assert (inst / "maglev_ros" / "share" / "ament_index" / "resource_index" / "packages"
             / "maglev_ros").exists()
+    # `ros2 run maglev_ros <node>` looks in lib/<package>/
+    for exe in ("replay", "twin", "modal_id", "irregularity", "updater", "discrepancy", "maglev-ros"):
+        assert (inst / "maglev_ros" / "lib" / "maglev_ros" / exe).exists(), exe

@@ -123,6 +123,7 @@ def identify_free_decay(data: np.ndarray, fs_hz: float, window: FreeDecayWindow,
         est = SSICov(block_rows=est.block_rows, orders=est.orders, decimate_to_hz=est.decimate_to_hz,
                      freq_range_hz=est.freq_range_hz, ref_channels=est.ref_channels,
                      criteria=est.criteria, uncertainty="cluster", n_blocks=1,
-                     spectrum=est.spectrum, nperseg=est.nperseg, blas_threads=est.blas_threads)
+                     spectrum=est.spectrum, nperseg=est.nperseg, blas_threads=est.blas_threads,
+                     lag_shift=est.lag_shift)
     seg = np.asarray(data, dtype=float)[window.start_index:window.stop_index]
     return est.fit(seg, fs_hz, channels)

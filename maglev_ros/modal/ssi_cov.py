@@ -8,13 +8,31 @@ Algorithm (Peeters & De Roeck 1999, with the fast multi-order step of Doehler & 
    accumulated in the frequency domain, see :func:`output_covariances`). The
    fixed range keeps the exact shift structure ``R_k = C A^(k-1) G`` also for transient
    (free-decay) data, so the same code identifies a vehicle pass' free decay;
-3. block Hankel ``H[p, q] = R_{p+q+1}`` (i block rows, i block columns, reference columns),
-   ONE SVD at the maximum order, observability ``O = U_n S_n^(1/2)``;
+3. block Hankel ``H[p, q] = R_{p+q+1+s}`` (i block rows, i block columns, reference columns,
+   lag shift s, see below), ONE SVD at the maximum order, observability ``O = U_n S_n^(1/2)``;
 4. all lower orders from one QR of the upper shifted observability matrix:
    ``O_up = Q R`` gives ``A_n = R[:n,:n]^-1 (Q^T O_down)[:n,:n]`` (least squares for every n
    at the cost of an n x n triangular solve);
 5. poles ``lambda = fs ln(mu)``, shapes ``phi = C psi``; stabilization and automatic selection of
    physical poles by hierarchical clustering (:mod:`maglev_ros.modal.stabilization`).
+
+Shift-invariance check (``lag_shift``, instrumental-variable principle): the modes selected from
+the classic Hankel (lags 1..2i) are kept only if the same mode (frequency within 5 %, MAC above
+``criteria.duplicate_mac``) is also selected from the Hankel of lags ``1+s .. 2i+s``. For a
+structural mode ``R_{k+s} = C A^(k-1) (A^s G)``: the same poles, so a true mode passes. Output
+components with a SHORT memory drop out of the shifted Hankel: sensor noise (lag 0 only) and,
+above all, the direct feed-through of the forces into accelerations (the mass line
+``phi phi^T p`` of every mode above its resonance), white only before the acquisition's
+anti-alias filter and, after it, correlated over the filter's impulse-response length. Fitted
+from lags 1.., that short-memory, mode-1-shaped covariance produced a stable, heavily damped
+(4-9 %) spurious "mode" between the first two bending modes of simulated ambient records (issue 4:
+30.5 Hz beside 23.5 and 92.2 Hz; gone when the feed-through is removed, or when both the force
+band edge and the anti-alias filter are). Default ``lag_shift=None``: the lag beyond which the
+normalized autocorrelation of the slowest-decaying common acquisition filter (8th-order
+Butterworth, corner 0.4 x the identification rate) stays below 1 % (:func:`anti_alias_memory_lags`,
+8 lags); structural modes in range have memories of tens to hundreds of lags. The reported
+estimates stay those of the classic Hankel (identifying from the shifted lags alone removes the
+artifact too but measurably increases the scatter of some modes). ``lag_shift=0``: no check.
 
 Uncertainty (``uncertainty="blocks"``, default): the record is split into ``n_blocks`` equal
 blocks; each block's covariance Hankel ``H_b`` is projected on the full-data right singular
@@ -36,11 +54,12 @@ bench/bench_modal.py), and they pull in GUI/plot stacks.
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.signal import resample_poly
+from scipy.signal import butter, resample_poly, sosfilt
 
 from maglev_ros.errors import UserError
 from maglev_ros.modal.stabilization import (
@@ -136,6 +155,22 @@ def blas_threads(n: int | None):
     if ctl is None:  # pragma: no cover
         return contextlib.nullcontext()
     return ctl.limit(limits=int(n), user_api="blas")
+
+
+@functools.lru_cache(maxsize=None)
+def anti_alias_memory_lags(order: int = 8, cutoff_frac: float = 0.4, threshold: float = 0.01) -> int:
+    """Number of lags (at the recorded rate) after which the normalized autocorrelation of the
+    impulse response of an analog-like Butterworth low-pass (``order``, corner ``cutoff_frac`` x
+    rate; simulated at 16 x the rate) stays below ``threshold``: the memory of anti-alias-filtered
+    white inputs."""
+    over = 16
+    sos = butter(order, cutoff_frac, fs=float(over), output="sos")
+    imp = np.zeros(512 * over)
+    imp[0] = 1.0
+    h = sosfilt(sos, imp)
+    r = np.correlate(h, h, "full")[h.size - 1:][::over]
+    r = r / r[0]
+    return int(np.max(np.flatnonzero(np.abs(r) > threshold)) + 1)
 
 
 def decimation_factor(fs_hz: float, target_hz: float | None) -> int:
@@ -239,14 +274,16 @@ class SSICov:
     default 0..0.45 fs), ``ref_channels`` (column indices or names used as references; default
     all), ``criteria`` (:class:`StabilityCriteria`), ``uncertainty`` ("blocks" | "cluster"),
     ``n_blocks``, ``spectrum`` (compute the singular-value spectrum for the diagram),
-    ``blas_threads`` (BLAS threads during fit; None = leave the process setting alone).
+    ``blas_threads`` (BLAS threads during fit; None = leave the process setting alone),
+    ``lag_shift`` (lag shift of the shift-invariance check of the selected modes;
+    None = :func:`anti_alias_memory_lags`, 0 = no check; see the module docstring).
     """
 
     def __init__(self, block_rows: int = 40, orders=range(2, 81, 2), decimate_to_hz: float | None = None,
                  freq_range_hz: tuple[float, float] | None = None, ref_channels=None,
                  criteria: StabilityCriteria | None = None, uncertainty: str = "blocks",
                  n_blocks: int = 10, spectrum: bool = True, nperseg: int = 1024,
-                 blas_threads: int | None = 1):
+                 blas_threads: int | None = 1, lag_shift: int | None = None):
         if int(block_rows) < 2:
             raise UserError(f"block_rows: expected an integer >= 2, got {block_rows!r}")
         self.block_rows = int(block_rows)
@@ -264,6 +301,16 @@ class SSICov:
         self.spectrum = bool(spectrum)
         self.nperseg = int(nperseg)
         self.blas_threads = blas_threads
+        if lag_shift is None:
+            lag_shift = anti_alias_memory_lags()
+        if not (isinstance(lag_shift, (int, np.integer)) and lag_shift >= 0):
+            raise UserError(f"lag_shift: expected an integer >= 0, got {lag_shift!r}")
+        self.lag_shift = int(lag_shift)
+
+    @property
+    def max_lag(self) -> int:
+        """Highest covariance lag used: 2 block_rows + lag_shift (the shifted check Hankel)."""
+        return 2 * self.block_rows + self.lag_shift
 
     # ---- public --------------------------------------------------------------------------
     def fit(self, data, fs_hz: float, channels=None) -> ModalResult:
@@ -275,7 +322,7 @@ class SSICov:
         y, fs, channels = self._prepare(data, fs_hz, channels)
         refs = self._ref_indices(channels)
         nb = self.n_blocks if self.uncertainty == "blocks" else 1
-        covs = output_covariances(y, 2 * self.block_rows, refs, n_blocks=max(nb, 1))
+        covs = output_covariances(y, self.max_lag, refs, n_blocks=max(nb, 1))
         cov = covs.mean(axis=0)
         spec = sv_spectrum(y, fs, nperseg=min(self.nperseg, y.shape[0])) if self.spectrum else None
         res, _ = self.fit_covariances(cov, fs, channels, block_covs=covs if nb > 1 else None,
@@ -285,54 +332,33 @@ class SSICov:
     def fit_covariances(self, cov: np.ndarray, fs_hz: float, channels, block_covs=None,
                         spectrum: Spectrum | None = None, v0: np.ndarray | None = None,
                         uncertainty: str | None = None):
-        """Identify from precomputed covariances (2i+1, l, r); returns (ModalResult, V) where V
+        """Identify from precomputed covariances (lags 0..max_lag, l, r); returns (ModalResult, V) where V
         are the right singular vectors (warm start for the next call in streaming use)."""
         with blas_threads(self.blas_threads):
             return self._fit_covariances(cov, fs_hz, channels, block_covs, spectrum, v0, uncertainty)
 
     def _fit_covariances(self, cov, fs_hz, channels, block_covs, spectrum, v0, uncertainty):
         i = self.block_rows
-        if cov.shape[0] < 2 * i + 1:
-            raise UserError(f"covariances: expected {2 * i + 1} lags, got {cov.shape[0]}")
+        if cov.shape[0] < self.max_lag + 1:
+            raise UserError(f"covariances: expected {self.max_lag + 1} lags (0..2 block_rows + "
+                            f"lag_shift), got {cov.shape[0]}")
         l = cov.shape[1]
         channels = tuple(channels)
-        h = block_hankel(cov[:2 * i + 1], i)
-        n_max = int(self.orders[-1])
-        if n_max > min(h.shape):
-            raise UserError(f"orders: max order {n_max} exceeds the Hankel rank bound {min(h.shape)}"
-                            f" (block_rows x channels); expected a lower order or more block_rows")
-        u, s, v = top_svd(h, n_max, v0)
-        sq = np.sqrt(np.maximum(s, 1e-300))
-        o = u * sq
-        rq, tq = _observability_qr(o, l)
-        c = o[:l]
-        rows_o, rows_f, rows_z, rows_s = [], [], [], []
-        for n in self.orders:
-            a = _a_matrix(rq, tq, n)
-            mu, psi = np.linalg.eig(a)
-            keep = mu.imag > 1e-10
-            if not np.any(keep):
-                continue
-            _, f, z = poles_from_eigs(mu[keep], fs_hz)
-            phi = c[:, :n] @ psi[:, keep]
-            rows_o.append(np.full(f.size, n))
-            rows_f.append(f)
-            rows_z.append(z)
-            rows_s.append(phi.T)
         fr = self.freq_range_hz or (0.0, 0.45 * fs_hz)
-        if not rows_o:
+        poles = self._poles(cov[:2 * i + 1], fs_hz, v0, fr)
+        if poles is None:
             table = PoleTable(np.zeros(0, int), np.zeros(0), np.zeros(0), np.zeros((0, l), complex),
                               np.zeros(0), np.zeros(0, np.int8), np.zeros(0, int))
             return ModalResult((), table, spectrum, fs_hz, channels, "ssi-cov",
-                               uncertainty or self.uncertainty), v
-        order = np.concatenate(rows_o)
-        freq = np.concatenate(rows_f)
-        zeta = np.concatenate(rows_z)
-        shapes = np.concatenate(rows_s, axis=0)
-        mpcs = np.array([mpc(p) for p in shapes])
-        stable = stability_flags(order, freq, zeta, shapes, self.criteria)
-        clusters, labels = cluster_poles(order, freq, zeta, shapes, mpcs, stable, self.criteria,
-                                         fr, n_orders=self.orders.size)
+                               uncertainty or self.uncertainty), None
+        order, freq, zeta, shapes, mpcs, stable, clusters, labels, s, v = poles
+        if self.lag_shift > 0 and clusters:
+            k0 = self.lag_shift
+            check = self._poles(cov[k0:k0 + 2 * i + 1], fs_hz, None, fr)
+            clusters = self._shift_invariant(clusters, shapes, check)
+            labels = np.full(freq.size, -1, dtype=int)
+            for k, c in enumerate(clusters):
+                labels[c.members] = k
         table = PoleTable(order, freq, zeta, shapes, mpcs, stable, labels)
         unc = uncertainty or self.uncertainty
         stds = None
@@ -355,6 +381,64 @@ class SSICov:
                            tuple(cshapes)), v
 
     # ---- internals -----------------------------------------------------------------------
+    def _poles(self, cov, fs_hz, v0, fr):
+        """Multi-order poles and clusters from the Hankel of covariances (2i+1, l, r) (lags
+        0..2i; lag 0 unused); None when no oscillatory pole is found."""
+        i = self.block_rows
+        l = cov.shape[1]
+        h = block_hankel(cov, i)
+        n_max = int(self.orders[-1])
+        if n_max > min(h.shape):
+            raise UserError(f"orders: max order {n_max} exceeds the Hankel rank bound {min(h.shape)}"
+                            f" (block_rows x channels); expected a lower order or more block_rows")
+        u, s, v = top_svd(h, n_max, v0)
+        sq = np.sqrt(np.maximum(s, 1e-300))
+        o = u * sq
+        rq, tq = _observability_qr(o, l)
+        c = o[:l]
+        rows_o, rows_f, rows_z, rows_s = [], [], [], []
+        for n in self.orders:
+            a = _a_matrix(rq, tq, n)
+            mu, psi = np.linalg.eig(a)
+            keep = mu.imag > 1e-10
+            if not np.any(keep):
+                continue
+            _, f, z = poles_from_eigs(mu[keep], fs_hz)
+            phi = c[:, :n] @ psi[:, keep]
+            rows_o.append(np.full(f.size, n))
+            rows_f.append(f)
+            rows_z.append(z)
+            rows_s.append(phi.T)
+        if not rows_o:
+            return None
+        order = np.concatenate(rows_o)
+        freq = np.concatenate(rows_f)
+        zeta = np.concatenate(rows_z)
+        shapes = np.concatenate(rows_s, axis=0)
+        mpcs = np.array([mpc(p) for p in shapes])
+        stable = stability_flags(order, freq, zeta, shapes, self.criteria)
+        clusters, labels = cluster_poles(order, freq, zeta, shapes, mpcs, stable, self.criteria,
+                                         fr, n_orders=self.orders.size)
+        return order, freq, zeta, shapes, mpcs, stable, clusters, labels, s, v
+
+    def _shift_invariant(self, clusters, shapes, check):
+        """Keep the clusters that are also selected from the lag-shifted Hankel: same frequency
+        within 5 % (the block matching tolerance) and MAC above ``criteria.duplicate_mac``."""
+        if check is None:
+            return []
+        c_shapes, c_clusters = check[3], check[6]
+        if not c_clusters:
+            return []
+        cf = np.array([c.frequency_hz for c in c_clusters])
+        cs = np.array([c_shapes[c.representative] for c in c_clusters]).T
+        keep = []
+        for cl in clusters:
+            m = mac(shapes[cl.representative][:, None], cs)[0]
+            ok = (np.abs(cf - cl.frequency_hz) / cl.frequency_hz < 0.05) & (m > self.criteria.duplicate_mac)
+            if np.any(ok):
+                keep.append(cl)
+        return keep
+
     def _block_uncertainty(self, block_covs, v, s, l, fs_hz, clusters, table):
         i = self.block_rows
         inv_sq = 1.0 / np.sqrt(np.maximum(s, 1e-300))
@@ -365,7 +449,7 @@ class SSICov:
         # is present there), one eigen-decomposition per block
         n = int(max(table.order[cl.representative] for cl in clusters))
         for b in range(nb):
-            hb = block_hankel(block_covs[b], i)
+            hb = block_hankel(block_covs[b][:2 * i + 1], i)
             ob = (hb[:, :] @ v[:, :n]) * inv_sq[:n]
             q, r = np.linalg.qr(ob[:-l])
             a = solve_triangular(r, q.T @ ob[l:], check_finite=False)
@@ -407,7 +491,7 @@ class SSICov:
             raise UserError(f"channels: expected {y.shape[1]} names, got {len(channels)}")
         y, fs = decimate(y, fs_hz, self.decimate_to_hz)
         y = y - y.mean(axis=0)
-        need = 4 * self.block_rows * max(self.n_blocks if self.uncertainty == "blocks" else 1, 1)
+        need = (4 * self.block_rows + self.lag_shift) * max(self.n_blocks if self.uncertainty == "blocks" else 1, 1)
         if y.shape[0] < need:
             raise UserError(f"data: {y.shape[0]} samples after decimation, expected at least {need}"
                             f" for block_rows={self.block_rows}")

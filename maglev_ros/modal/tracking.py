@@ -87,7 +87,7 @@ class StreamingSSI:
         self.fs_hz = self.fs_in_hz / q
         self.dec = StreamingDecimator(q, len(self.channels))
         self.refs = ssi._ref_indices(self.channels)
-        self.max_lag = 2 * ssi.block_rows
+        self.max_lag = ssi.max_lag
         self.chunk_len = max(int(round(update_s * self.fs_hz)), 1)
         self.n_chunks = max(int(round(window_s / update_s)), 1)
         self.window_s, self.update_s = float(window_s), float(update_s)

@@ -354,7 +354,8 @@ class SSICov:
         order, freq, zeta, shapes, mpcs, stable, clusters, labels, s, v = poles
         if self.lag_shift > 0 and clusters:
             k0 = self.lag_shift
-            check = self._poles(cov[k0:k0 + 2 * i + 1], fs_hz, None, fr)
+            # same right (controllability) subspace as the classic Hankel: warm start from it
+            check = self._poles(cov[k0:k0 + 2 * i + 1], fs_hz, v, fr)
             clusters = self._shift_invariant(clusters, shapes, check)
             labels = np.full(freq.size, -1, dtype=int)
             for k, c in enumerate(clusters):

@@ -27,6 +27,7 @@ def run(args) -> int:
         raise UserError(f"{args.params_file}: no such parameters file")
     if not args.fast:
         check_rate(args.rate)
-    replay = {"rate": float(args.rate), "fast": bool(args.fast)}
+    # one process's \r progress bar garbles the merged output: the replay logs its summary instead
+    replay = {"rate": float(args.rate), "fast": bool(args.fast), "progress": False}
     return launch(args.graph, bag=args.bag, overrides={"replay": replay},
                   params_file=args.params_file)

@@ -146,6 +146,7 @@ class _Progress:
         if not self.enabled or (not force and now - self.last < 0.5):
             return
         self.last = now
+        bag_s = max(bag_s, 0.0)
         frac = min(1.0, bag_s / self.total_s) if self.total_s > 0 else 1.0
         bar = "#" * int(frac * 24)
         speed = bag_s / max(now - self.t_wall0, 1e-9)

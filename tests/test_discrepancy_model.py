@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.linalg import eigh
 
-from maglev_ros.discrepancy.model import (ModelSpec, _free_free_shape, assemble_span_ends, base_spec,
+from maglev_ros.discrepancy.model import (ModelSpec, _free_free_shape, base_spec,
                                           flexible_vehicle)
 from maglev_ros.twin.design import GuidewayProps, SpanSpec, twin_config, with_levitation
 from maglev_ros.twin.guideway import assemble_span
@@ -22,22 +22,24 @@ def _f1(fe):
     return w[0] / (2 * math.pi)
 
 
-def test_equal_ends_match_the_twin_span():
-    a = assemble_span(SPAN, 16)
-    b = assemble_span_ends(SPAN, 16, P.bearing_stiffness_n_per_m, P.bearing_stiffness_n_per_m)
-    assert np.allclose(a.stiffness, b.stiffness) and np.allclose(a.mass, b.mass)
-    assert b.rayleigh_a == pytest.approx(a.rayleigh_a) and b.rayleigh_b == pytest.approx(a.rayleigh_b)
+def test_one_rigid_end_lies_between_all_elastic_and_all_rigid():
+    kb = P.bearing_stiffness_n_per_m
+    both = _f1(assemble_span(SPAN, 16))
+    mixed = assemble_span(SPAN, 16, kb_ends=(math.inf, kb))
+    rigid = _f1(assemble_span(SPAN, 16, kb_ends=(math.inf, math.inf)))
+    assert mixed.stiffness.shape[0] == 2 * 17 - 1          # only the rigid end's DOF removed
+    assert both < _f1(mixed) < rigid
 
 
 def test_rigid_ends_give_the_simply_supported_frequency():
-    fe = assemble_span_ends(SPAN, 16, math.inf, math.inf)
+    fe = assemble_span(SPAN, 16, kb_ends=(math.inf, math.inf))
     ref = (math.pi / L) ** 2 * math.sqrt(P.bending_stiffness_n_m2 / P.mass_per_length_kg_m) / (2 * math.pi)
     assert _f1(fe) == pytest.approx(ref, rel=1e-3)
 
 
 def test_one_soft_bearing_lowers_the_mode_towards_rigid_rotation():
     kb = P.bearing_stiffness_n_per_m
-    f = [_f1(assemble_span_ends(SPAN, 16, kb, kb * r)) for r in (1.0, 0.1, 0.01, 1e-4)]
+    f = [_f1(assemble_span(SPAN, 16, kb_ends=(kb, kb * r))) for r in (1.0, 0.1, 0.01, 1e-4)]
     assert all(a > b for a, b in zip(f, f[1:]))
     # one end on a vanishing spring: the girder rotates about the other bearing as a rigid body,
     # f = sqrt(3 k_end / m_total) / 2 pi (rigid bar pinned at one end, spring at the other)

@@ -6,7 +6,7 @@ recorded vehicle position/speed and returns each measured channel's prediction o
 stamps. Extensions that need a hook inside the twin are built here from the twin's public
 pieces, without changing the twin files:
 
-- per-end bearing stiffness: :func:`assemble_span_ends` (the twin's span assembly with one
+- per-end bearing stiffness: :func:`maglev_ros.twin.guideway.assemble_span` with ``kb_ends`` (one
   stiffness per end) replaces the span FE models of the stepper's ``Guideway``;
 - car-body bending: :func:`flexible_vehicle` adds one free-free bending DOF of the car body to the
   twin's assembled rigid 18-DOF ``VehicleModel`` (secondary springs see psi(x) eta);
@@ -19,18 +19,16 @@ pieces, without changing the twin files:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
-from scipy.linalg import eigh
 
-from maglev_ros.errors import UserError
 from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_levitation
-from maglev_ros.twin.guideway import SpanFE, beam_element
+from maglev_ros.twin.guideway import assemble_span
 from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
-from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
+from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium
 
 from .recording import Recording
 
@@ -103,34 +101,6 @@ def base_spec(metadata: Mapping, n_elements: int | None = None) -> ModelSpec:
 
 
 # ------------------------------------------------------------------------------------------
-def assemble_span_ends(span: SpanSpec, n_elements: int, kb_left: float, kb_right: float) -> SpanFE:
-    """The twin's span assembly (``guideway.assemble_span``) with its own bearing stiffness at each
-    end; Rayleigh damping on the first two modes of the span as there."""
-    p = span.props
-    le = span.length_m / n_elements
-    ke, me = beam_element(p.bending_stiffness_n_m2, p.mass_per_length_kg_m, le)
-    ndof = 2 * (n_elements + 1)
-    K = np.zeros((ndof, ndof))
-    M = np.zeros((ndof, ndof))
-    for e in range(n_elements):
-        s = slice(2 * e, 2 * e + 4)
-        K[s, s] += ke
-        M[s, s] += me
-    removed = []
-    for dof, kb in ((0, kb_left), (2 * n_elements, kb_right)):
-        if math.isinf(kb):
-            removed.append(dof)
-        else:
-            K[dof, dof] += kb
-    free = np.array([i for i in range(ndof) if i not in removed])
-    K = K[np.ix_(free, free)]
-    M = M[np.ix_(free, free)]
-    w2 = eigh(K, M, eigvals_only=True, subset_by_index=[0, 1])
-    w1, w2_ = np.sqrt(np.clip(w2, 1e-12, None))
-    z = p.damping_ratio
-    return SpanFE(span, n_elements, M, K, free, 2 * z * w1 * w2_ / (w1 + w2_), 2 * z / (w1 + w2_))
-
-
 def _free_free_shape(L: float):
     bl = 4.730040745
     sig = (math.cosh(bl) - math.cos(bl)) / (math.sinh(bl) - math.sin(bl))
@@ -188,7 +158,7 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
         for i, (fl, fr) in enumerate(spec.bearing_factor):
             if (fl, fr) != (1.0, 1.0):
                 kb = spans[i].props.bearing_stiffness_n_per_m
-                fes[i] = assemble_span_ends(spans[i], cfg.numerics.n_elements_per_span, kb * fl, kb * fr)
+                fes[i] = assemble_span(spans[i], cfg.numerics.n_elements_per_span, kb_ends=(kb * fl, kb * fr))
         st.guideway.spans_fe = tuple(fes)
         changed = True
     if changed:
@@ -222,7 +192,7 @@ def guideway_modal(spec: ModelSpec):
         for i, (fl, fr) in enumerate(spec.bearing_factor):
             if (fl, fr) != (1.0, 1.0):
                 kb = spans[i].props.bearing_stiffness_n_per_m
-                fes[i] = assemble_span_ends(spans[i], cfg.numerics.n_elements_per_span, kb * fl, kb * fr)
+                fes[i] = assemble_span(spans[i], cfg.numerics.n_elements_per_span, kb_ends=(kb * fl, kb * fr))
         gw.spans_fe = tuple(fes)
     return gw.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
 

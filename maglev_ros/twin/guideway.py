@@ -112,8 +112,13 @@ class SpanFE:
         return np.flatnonzero(self.free_dofs % 2 == 0)
 
 
-def assemble_span(span: SpanSpec, n_elements: int = 16) -> SpanFE:
-    """FE model of one span on its two vertical bearings, with Rayleigh damping on modes 1-2."""
+def assemble_span(span: SpanSpec, n_elements: int = 16,
+                  kb_ends: tuple[float, float] | None = None) -> SpanFE:
+    """FE model of one span on its two vertical bearings, with Rayleigh damping on modes 1-2.
+
+    ``kb_ends`` (start, end) overrides the span's bearing stiffness per end (e.g. one degraded
+    bearing); ``inf`` at an end is a rigid support there.
+    """
     if n_elements < 2:
         raise UserError(f"n_elements_per_span: expected >= 2, got {n_elements}")
     p = span.props
@@ -127,13 +132,13 @@ def assemble_span(span: SpanSpec, n_elements: int = 16) -> SpanFE:
         K[s, s] += ke
         M[s, s] += me
     kb = p.bearing_stiffness_n_per_m
-    ends = (0, 2 * n_elements)
-    if math.isinf(kb):
-        free = np.array([i for i in range(ndof) if i not in ends])
-    else:
-        free = np.arange(ndof)
-        for i in ends:
-            K[i, i] += kb
+    removed = []
+    for dof, k in zip((0, 2 * n_elements), kb_ends if kb_ends is not None else (kb, kb)):
+        if math.isinf(k):
+            removed.append(dof)
+        else:
+            K[dof, dof] += k
+    free = np.array([i for i in range(ndof) if i not in removed])
     K = K[np.ix_(free, free)]
     M = M[np.ix_(free, free)]
     w2 = eigh(K, M, eigvals_only=True, subset_by_index=[0, 1])

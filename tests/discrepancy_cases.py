@@ -14,6 +14,13 @@ Effects are implemented here independently where that is cheap: a degraded beari
 pad in series with the nominal bearing, ambient vibration as random coloured point forces at
 random places on every girder (modal superposition), sensor faults on the recorded samples, a
 girder attachment (tuned-mass-like resonator) by an augmented FE eigenproblem.
+
+Every case runs over a random guideway irregularity (as every real line has one; the diagnosis
+must then go through the irregularity it reconstructs from each pass): one profile per case,
+shared by its passes, from a reference PSD with a random roughness scale, wavelength band and
+seed. The tune split draws from the FRA class-6 shape (k = 0.25) and the paper-001 shape (FRA
+form, k = 1); the held-out split uses the German high-speed shape (low-wavenumber cut-off,
+other slope), never used while tuning.
 """
 from __future__ import annotations
 
@@ -29,6 +36,7 @@ from maglev_ros.discrepancy.recording import Recording, recording_from_arrays
 from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, line_spans, twin_config, with_levitation
 from maglev_ros.twin.guideway import Guideway, ModalBasis, SpanFE, beam_element
+from maglev_ros.twin.irregularity_psd import psd_by_name, random_profile
 from maglev_ros.twin.levitation import LevitationModel, VehicleSystem, closed_loop
 from maglev_ros.twin.vehicle import static_equilibrium
 
@@ -137,11 +145,35 @@ def _attachment_modes(gw: Guideway, span_i: int, x_rel: float, f_att: float, mas
                       tuple(vecs))
 
 
-def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, variant: dict) -> TwinStepper:
+def _lead_s(v: float, n_spans: int, offs: np.ndarray, variant: dict) -> float:
+    """Seconds recorded before the vehicle enters / after it leaves: a pass of at least
+    ``variant["min_pass_s"]`` (7.5 s) and never less than 1.5 s of approach."""
+    over = (n_spans * L_SPAN + offs.max() - offs.min()) / v
+    return max(1.5, 0.5 * (variant.get("min_pass_s", 7.5) - over))
+
+
+TUNE_PSDS = (("fra6", (0.6, 1.3)), ("maglev_001", (0.8, 2.0)))     # (PSD, amplitude scale range)
+HELDOUT_PSDS = (("german_low", (0.6, 1.4)), ("german_high", (0.5, 1.0)))
+
+
+def guideway_profile(rng, split: str, x_lo: float, x_hi: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Random unloaded guideway irregularity (x_m, r_m) over [x_lo, x_hi] and what was drawn."""
+    choices = TUNE_PSDS if split == "tune" else HELDOUT_PSDS
+    name, (s_lo, s_hi) = choices[int(rng.integers(len(choices)))]
+    scale = float(rng.uniform(s_lo, s_hi))
+    band = (float(rng.uniform(0.6, 1.2)), float(rng.uniform(25.0, 45.0)))
+    x, r = random_profile(psd_by_name(name), x_hi - x_lo, 0.02, band, rng, start_m=x_lo)
+    r = scale * r
+    return x, r, {"psd": name, "scale": scale, "wavelength_band_m": band, "rms_m": float(np.std(r))}
+
+
+def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, variant: dict,
+                   irregularity=None) -> TwinStepper:
     if eff == "control_delay" or variant.get("extra_lag_s", 0) > 0:
         lag = (tp.get("lag_s", 0.0) if eff == "control_delay" else 0.0) + variant.get("extra_lag_s", 0.0)
         cfg = with_levitation(cfg, coil_inductance_h=lag * cfg.levitation.coil_resistance_ohm)
-    st = TwinStepper(cfg, spans, sensors=sensors, fs_out_hz=1000.0, start_position_m=x0, start_speed_mps=v,
+    st = TwinStepper(cfg, spans, sensors=sensors, irregularity=irregularity, fs_out_hz=1000.0,
+                     start_position_m=x0, start_speed_mps=v,
                      init="rest", method=variant.get("method", "newmark"), dt_max_s=variant.get("dt_s", 5e-4))
     n_el = cfg.numerics.n_elements_per_span
     changed = False
@@ -269,11 +301,22 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
     md_amb = metadata(design, "ambient", 0.0, n_spans)
     gsens = {k: s["position_m"] for k, s in md_amb["sensors"].items()}
     passes = []
+    offs_all = np.array(cfg_true.vehicle.magnet_offsets_m)
+    irr_info = None
+    irr = None
+    if variant.get("irregularity", True):
+        lead = max(_lead_s(v, n_spans, offs_all, variant) for v in speeds)
+        x_lo = -offs_all.max() - max(speeds) * lead + offs_all.min() - 20.0
+        x_hi = n_spans * L_SPAN - offs_all.min() + max(speeds) * lead + 20.0
+        xi, ri, irr_info = guideway_profile(rng, split, x_lo, x_hi)
+        irr = (xi, ri)
     for v, md in zip(speeds, md_pass):
         offs = np.array(cfg_true.vehicle.magnet_offsets_m)
-        x0 = -offs.max() - v * 1.0
-        dur = (n_spans * L_SPAN - offs.min() + v * 1.0 - x0) / v
-        st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, effect, tp, variant)
+        # approach/departure recorded (the irregularity reconstruction needs ~6 s at 0.8 Hz)
+        lead = _lead_s(v, n_spans, offs, variant)
+        x0 = -offs.max() - v * lead
+        dur = (n_spans * L_SPAN - offs.min() + v * lead - x0) / v
+        st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, effect, tp, variant, irr)
         res = st.advance(dur, v)
         t_hi = res.time_s
         sig_hi = {}
@@ -326,7 +369,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         amb[k] = (t_amb[1::2], y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour))
     ambient = recording_from_arrays(md_amb, amb, None, source=f"{case_id}/ambient")
     truth = {"effect": effect, "category": CATEGORY.get(effect) if effect else None, "params": tp,
-             "design_error": derr, "location": _truth_location(effect, tp)}
+             "design_error": derr, "location": _truth_location(effect, tp), "irregularity": irr_info}
     return Case(case_id, effect, float(params.get("magnitude", 0.0)), truth, ambient, passes, split, variant)
 
 

@@ -103,3 +103,94 @@ def test_injected_tone_is_located_in_time_place_and_band():
     assert 5.0 <= m.position_m[0] <= 12.0 and 28.0 <= m.position_m[1] <= 36.0
     # severity: tone power 0.02 over the 44-52 Hz... band noise power -> >> 1
     assert m.severity > 10
+
+
+# ---- noise floor from the recording's own quiet frames (coloured sensor noise) ----------------
+def _coloured(rng, n, colour, std):
+    """Independent reference noise of RMS ``std``: white, pink (PSD ~ 1/f down to the record's
+    lowest frequency) or brown (PSD ~ 1/(f^2 + 0.5^2): a random walk leaking at 0.5 Hz, as an
+    instrument chain with its high-pass gives; an unbounded random walk is a drift, not noise)."""
+    w = rng.standard_normal(n)
+    if colour != "white":
+        f = np.fft.rfftfreq(n, 1 / FS)
+        f[0] = f[1]
+        shape = np.sqrt(f ** 2 + 0.5 ** 2) if colour == "brown" else np.sqrt(f)
+        w = np.fft.irfft(np.fft.rfft(w) / shape, n)
+    return std * w / w.std()
+
+
+def _pass_case(rng, colour, std, tone_amp=0.0, tone_hz=47.0):
+    """8 s record; the 'twin' signal (a vehicle-passage response: 2-6 Hz quasi-static bump and a
+    decaying 17 Hz mode) lives in 2.5-5.5 s, known exactly to the model; noise of one colour on
+    top; optionally an unmodelled tone on G2 in 3-5 s (the real effect)."""
+    from maglev_ros.discrepancy.evaluate import fit_noise_floor
+    t = np.arange(0, 8, 1 / FS)
+    env = np.clip(np.sin(np.pi * (t - 2.5) / 3.0), 0, None) * ((t > 2.5) & (t < 5.5))
+    twin = {"G1": 0.5 * env * np.sin(2 * np.pi * 17.0 * t) + 0.3 * env,
+            "G2": 0.4 * env * np.sin(2 * np.pi * 17.0 * t + 1.0) + 0.2 * env}
+    tone = tone_amp * np.sin(2 * np.pi * tone_hz * t) * ((t > 3.0) & (t < 5.0))
+    sig = {"G1": (t, twin["G1"] + _coloured(rng, t.size, colour, std)),
+           "G2": (t, twin["G2"] + _coloured(rng, t.size, colour, std) + tone)}
+    rec = _rec(sig, (t[::5], 10.0 * t[::5] - 20.0, np.full(t[::5].size, 10.0)))
+    g = frame_grid(rec)
+    pm = {n: band_powers(c.time_s, c.values, c.sample_rate_hz, g) for n, c in rec.channels.items()}
+    masks = {n: usable_bands(g, c.sample_rate_hz) for n, c in rec.channels.items()}
+    rd = RecData(rec, g, pm, masks)
+    model = {}
+    for n, c in rec.channels.items():
+        pt = band_powers(c.time_s, twin[n], c.sample_rate_hz, g)
+        tot = pt.sum(axis=1)
+        quiet = tot <= 1e-3 * tot.max()
+        # the model's own floor, as evaluate.prepare makes it: a power law through quiet frames
+        rd.noise[n] = fit_noise_floor(pm[n][quiet], g, masks[n], np.zeros(g.n_bands, bool))
+        rd.quiet[n] = quiet
+        model[n] = pt + rd.noise[n][None, :]
+    return rd, model
+
+
+@pytest.mark.parametrize("colour", ["white", "pink", "brown"])
+@pytest.mark.parametrize("std", [0.003, 0.03])
+@pytest.mark.parametrize("seed", [11, 12])
+def test_coloured_sensor_noise_is_never_a_mismatch(colour, std, seed):
+    rng = np.random.default_rng(seed + int(std * 1e4) + 100 * len(colour))
+    rd, model = _pass_case(rng, colour, std)
+    found = mismatches(residual_map(rd, model))
+    assert found == [], [m.to_dict() for m in found]
+
+
+@pytest.mark.parametrize("colour", ["white", "pink", "brown"])
+def test_modest_effect_is_still_found_over_coloured_noise(colour):
+    """A tone whose band power is ~25x the (true) noise power in its band, in 3-5 s on G2."""
+    rng = np.random.default_rng(5)
+    std = 0.01
+    # true noise power in the tone's band, by Monte Carlo on the same noise process
+    g = FrameGrid(np.arange(0.25, 7.75, 0.25), 0.5, __import__("maglev_ros.discrepancy.features",
+                                                                fromlist=["BAND_EDGES_HZ"]).BAND_EDGES_HZ)
+    t = np.arange(0, 8, 1 / FS)
+    b = int(np.searchsorted(g.band_center_hz, 47.0) - 1)
+    pn = np.mean([np.nanmean(band_powers(t, _coloured(rng, t.size, colour, std), FS, g)[:, b:b + 2].sum(axis=1))
+                  for _ in range(10)])
+    amp = math.sqrt(2 * 25 * pn)
+    rd, model = _pass_case(rng, colour, std, tone_amp=amp)
+    found = mismatches(residual_map(rd, model))
+    hits = [m for m in found if m.frequency_hz[0] <= 47.0 <= m.frequency_hz[1]]
+    assert hits, [m.to_dict() for m in found]
+    m = hits[0]
+    assert m.channels == ("G2",)
+    assert 2.4 <= m.time_s[0] <= 3.3 and 4.7 <= m.time_s[1] <= 5.6
+    # nothing else is called a mismatch
+    assert len(found) == len(hits)
+
+
+def test_pink_noise_floor_is_raised_to_what_quiet_frames_show():
+    """The power-law floor under-reads the lowest band of 1/f noise; the local floor does not."""
+    from maglev_ros.discrepancy.localize import local_noise_floor
+    rng = np.random.default_rng(21)
+    rd, model = _pass_case(rng, "pink", 0.02)
+    fl = local_noise_floor(rd, model)
+    for n in rd.rec.channels:
+        q = rd.quiet[n]
+        mean_quiet = np.mean(rd.pm[n][q], axis=0)
+        assert np.all(fl[n] >= rd.noise[n] * (1 - 1e-12))
+        # lowest band: within a factor 2 of the quiet frames' mean power (chi-square scatter)
+        assert 0.5 <= fl[n][0] / mean_quiet[0] <= 2.0

@@ -6,17 +6,33 @@ Pmod = twin + noise floor (+ stochastic extensions). A cell is a mismatch only i
   sqrt(P) above max(0.3, 3 / sqrt(dof)), dof = 2 x periodogram bins in the band), and
 - the residual power exceeds 3 x the noise floor of that band,
 so sensor noise (and the random scatter of its band powers) is never called a mismatch.
+
+Noise floor (:func:`local_noise_floor`): the model's smooth power-law floor (from
+:mod:`.evaluate`) is a good summary but can fall below the real sensor noise in some bands (1/f
+or brown noise piles up in the lowest band, anti-alias filters bend the top). So the floor used
+here is, per channel and band, never below what the recording itself shows where the twin
+predicts (almost) nothing: the quiet cells (frame, band) with twin power <= ``QUIET_TWIN_REL`` x the
+model floor (guideway sensors: vehicle off their span; vehicle sensors: only bands where the twin
+is quiet in every frame, e.g. above the vehicle's response, since a vehicle is never at rest). Their level is a clipped
+mean (cells above the 99 % point of the fitted Gamma scatter, at least 4 x the median, dropped: robust to a minority of frames holding a real effect,
+nearly unbiased for chi-square-scattered noise). In bands that hold a guideway mode (+-12 %, from
+the nominal design in the recording's metadata) a guideway channel's floor is interpolated in
+log-log from the neighbouring mode-free bands instead, so structural vibration before/after the
+vehicle (adjacent lines, ground vibration) stays a mismatch and is not absorbed into "noise".
 Cells are grouped per channel group into connected regions (scipy.ndimage.label over
 frames x bands); each region becomes a ``Mismatch`` with its channels, time, the span of the line
 the vehicle covered meanwhile (guideway sensors' own positions when no vehicle is on the line),
-band and severity (mean residual power over the noise floor).
+band and severity (mean residual power over the noise floor). Hand-written statistics (a clipped
+mean and a log-log interpolation): no library offers a band-power noise floor of this kind.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from scipy.stats import gamma as gamma_dist
 
 from .evaluate import RecData
 from .recording import GROUPS
@@ -46,22 +62,159 @@ class ResidualMap:
     severity: dict
     flags: dict
     rel: dict
+    floor: dict = field(default_factory=dict)
+
+
+QUIET_TWIN_REL = 1e-3     # a frame is quiet when the twin predicts <= this x its busiest frame
+MIN_QUIET_CELLS = 3
+CLIP_REL_MEDIAN = 4.0
+
+
+def _modal_band_mask(rd: RecData, rel: float = 0.12) -> np.ndarray:
+    """Bands holding a guideway mode of the nominal design (+-rel), from the recording's metadata."""
+    key = id(rd.rec.metadata)
+    hit = _MODAL_CACHE.get(key)
+    if hit is not None and hit[0] is rd.rec.metadata:
+        freqs = hit[1]
+    else:
+        try:
+            from .model import base_spec, guideway_modal
+            freqs = np.asarray(guideway_modal(base_spec(rd.rec.metadata)).freq_hz, float)
+        except Exception:           # no line / design usable: no band is protected
+            freqs = np.zeros(0)
+        if len(_MODAL_CACHE) > 64:
+            _MODAL_CACHE.clear()
+        _MODAL_CACHE[key] = (rd.rec.metadata, freqs)
+    e = rd.grid.edges_hz
+    m = np.zeros(rd.grid.n_bands, bool)
+    for f in freqs:
+        m |= (e[1:] >= f * (1 - rel)) & (e[:-1] <= f * (1 + rel))
+    return m
+
+
+_MODAL_CACHE: dict = {}
+
+
+def _clipped_mean(x: np.ndarray, k: float = np.inf) -> float:
+    """Mean of x without values above the 99 % point of a Gamma(k) scatter around the median
+    (at least ``CLIP_REL_MEDIAN`` x the median): robust to a minority of cells holding a real
+    effect, nearly unbiased for band powers of noise however heavy-tailed (small k)."""
+    med = float(np.median(x))
+    clip = CLIP_REL_MEDIAN
+    if np.isfinite(k) and k > 0:
+        clip = max(clip, float(gamma_dist.ppf(0.99, k) / gamma_dist.median(k)))
+    keep = x[x <= clip * med] if med > 0 else x
+    return float(np.mean(keep)) if keep.size else med
+
+
+def _loglog_fill(ratio: np.ndarray, known: np.ndarray, fc: np.ndarray) -> np.ndarray:
+    """Fill unknown bands by linear interpolation of log(ratio) over log(f) (nearest value beyond the ends)."""
+    out = ratio.copy()
+    lf = np.log(fc)
+    out[~known] = np.exp(np.interp(lf[~known], lf[known], np.log(ratio[known])))
+    return out
+
+
+_K_TABLE = np.logspace(-1.5, 2.5, 400)
+_Q_RATIO = gamma_dist.ppf(0.25, _K_TABLE) / gamma_dist.ppf(0.75, _K_TABLE)     # increasing in k
+
+
+def _gamma_shape(x: np.ndarray) -> float:
+    """Gamma shape k matching the sample's quartile ratio Q1/Q3 (scale-free, and robust to a
+    minority of cells holding a real effect, unlike the log-moment ML estimate)."""
+    x = x[np.isfinite(x) & (x > 0)]
+    if x.size < 4:
+        return np.inf
+    q1, q3 = np.percentile(x, [25, 75])
+    r = q1 / q3 if q3 > 0 else 1.0
+    if r >= _Q_RATIO[-1]:
+        return np.inf
+    return float(np.interp(r, _Q_RATIO, _K_TABLE))
+
+
+def local_noise_floor(rd: RecData, model_p: dict) -> dict:
+    """Per channel (n_bands,) noise floor; see :func:`noise_floor_and_dof`."""
+    return noise_floor_and_dof(rd, model_p)[0]
+
+
+def noise_floor_and_dof(rd: RecData, model_p: dict) -> tuple[dict, dict]:
+    """Per channel (n_bands,): max(model floor, level of the recording's own quiet cells).
+
+    ``model_p - rd.noise`` is what the model predicts beyond noise (twin, stochastic extensions);
+    cells where that is <= ``QUIET_TWIN_REL`` x ``rd.noise`` are quiet. Bands with fewer than
+    ``MIN_QUIET_CELLS`` quiet cells (or guideway channels' modal bands) take the
+    interpolation (log-log) of their neighbours' ratio quiet level / model floor, the nearest
+    ratio beyond the ends; with no quiet band at all the model floor stands.
+
+    Also the degrees of freedom of a band power per channel and band: 2 x periodogram bins, but
+    never more than twice the Gamma shape fitted to the quiet cells (1/f noise concentrates its
+    power in the lowest bins, so the lowest band scatters much more than its bin count says).
+    """
+    g = rd.grid
+    fc = np.maximum(g.band_center_hz, 0.5 * g.edges_hz[1])
+    modal = None
+    out, dofs = {}, {}
+    nb = np.array([max(1.0, round(w * g.frame_s)) for w in np.diff(g.edges_hz)])
+    for n, ch in rd.rec.channels.items():
+        base = np.asarray(rd.noise[n], float)
+        pm = rd.pm[n]
+        fin = np.all(np.isfinite(pm), axis=1)
+        if ch.on_vehicle or fin.sum() < MIN_QUIET_CELLS:
+            # a vehicle is never at rest on the line: no frame of a vehicle channel is quiet (its
+            # model floor already comes from the measured-minus-twin signal, see evaluate.prepare)
+            out[n], dofs[n] = base, 2.0 * nb
+            continue
+        # what the model predicts beyond noise and beyond any stationary (stochastic) part
+        pred = np.asarray(model_p[n], float) - base[None, :]
+        pred = pred - np.nanmin(np.where(fin[:, None], pred, np.inf), axis=0)[None, :]
+        tot = np.nansum(np.where(rd.masks[n][None, :], pred, 0.0), axis=1)
+        top = float(np.max(tot[fin])) if fin.any() else 0.0
+        qf = fin & (tot <= QUIET_TWIN_REL * top) if top > 0 else fin.copy()
+        quiet = np.repeat(qf[:, None], g.n_bands, axis=1)
+        level = np.full(g.n_bands, np.nan)
+        dof = 2.0 * nb
+        for b in range(g.n_bands):
+            q = pm[quiet[:, b], b]
+            k = _gamma_shape(q) if q.size >= 2 * MIN_QUIET_CELLS else np.inf
+            if q.size >= MIN_QUIET_CELLS:
+                level[b] = _clipped_mean(q, k)
+            if np.isfinite(k):
+                dof[b] = min(dof[b], max(0.5, 2.0 * k))
+        dofs[n] = dof
+        known = np.isfinite(level) & (level > 0) & rd.masks[n]
+        if ch.group.startswith("guideway"):
+            if modal is None:
+                modal = _modal_band_mask(rd)
+            known &= ~modal
+        if not known.any():
+            out[n] = base
+            continue
+        # the correction is a ratio to the model floor (band widths and the floor's colour carry over)
+        ratio = np.where(known, level / np.where(base > 0, base, np.inf), 1.0)
+        known &= ratio > 0
+        if not known.any():
+            out[n] = base
+            continue
+        out[n] = base * np.maximum(1.0, _loglog_fill(ratio, known, fc))
+    return out, dofs
 
 
 def residual_map(rd: RecData, model_p: dict) -> ResidualMap:
+    """Flags and severities of every (frame, band) cell per channel against the local noise floor."""
     sev, flags, rel = {}, {}, {}
     g = rd.grid
-    nb = np.array([max(1.0, round(w * g.frame_s)) for w in np.diff(g.edges_hz)])
-    dof = 2.0 * nb
+    floor, dofs = noise_floor_and_dof(rd, model_p)
     for n in rd.rec.channels:
-        pm, pmod, pn = rd.pm[n], model_p[n], rd.noise[n][None, :]
+        dof = dofs[n]
+        pn = floor[n][None, :]
+        pm, pmod = rd.pm[n], model_p[n] + np.clip(pn - rd.noise[n][None, :], 0, None)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.abs(np.sqrt(np.clip(pm, 0, None)) - np.sqrt(pmod)) / np.sqrt(pmod)
             s = (pm - pmod) / np.maximum(pn, 1e-300)
         f = (r > np.maximum(0.3, 3.0 / np.sqrt(dof))[None, :]) & (np.abs(s) > 3.0)
         f &= rd.masks[n][None, :] & np.isfinite(pm)
         sev[n], flags[n], rel[n] = np.nan_to_num(s), f, np.nan_to_num(r)
-    return ResidualMap(rd, sev, flags, rel)
+    return ResidualMap(rd, sev, flags, rel, floor)
 
 
 def _positions(rd: RecData, t0: float, t1: float, chans: list[str]) -> tuple[float, float] | None:

@@ -27,7 +27,6 @@ mean and a log-log interpolation): no library offers a band-power noise floor of
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -202,7 +201,6 @@ def noise_floor_and_dof(rd: RecData, model_p: dict) -> tuple[dict, dict]:
 def residual_map(rd: RecData, model_p: dict) -> ResidualMap:
     """Flags and severities of every (frame, band) cell per channel against the local noise floor."""
     sev, flags, rel = {}, {}, {}
-    g = rd.grid
     floor, dofs = noise_floor_and_dof(rd, model_p)
     for n in rd.rec.channels:
         dof = dofs[n]

@@ -7,7 +7,16 @@ Publishes, for every measured block it can predict, /maglev/twin/predicted/<grou
 /maglev/twin/residual/<group> (SensorBlock, same stamp/rate/channels/units as the measured
 block; group = guideway_accel, guideway_displacement, vehicle_accel, vehicle_gap).
 
-Parameters: ``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
+Irregularity (see twin/online.py): ``irregularity_source`` vehicle (default: the twin measures
+the profile itself from the vehicle streams, point-magnet band), topic (the /maglev/irregularity
+message) or random (PSD sample; vehicle residuals are then never published). The vehicle is
+stepped with a bounded lag (``max_lag_s``) so that the measured profile lies under every magnet;
+a vehicle residual block is published only when valid (every magnet over the measured profile,
+settled); its prediction is always published. When the input stops for ``idle_flush_s`` (end of
+a replay), the queued remainder is stepped with the final profile and published.
+
+Parameters: ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush_s`` (2.0),
+``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
 ``seed`` (0), ``method`` (newmark | separated), ``fs_hz`` (0 = fastest measured rate),
 ``dt_max_s`` (2.5e-4), ``resync_m`` (0.05).
 """
@@ -16,6 +25,7 @@ from __future__ import annotations
 import array
 import json
 import sys
+import time
 
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -69,7 +79,12 @@ class TwinNode(Node):
             "fs_hz": float(p("fs_hz", 0.0).value) or None,
             "dt_max_s": float(p("dt_max_s", 2.5e-4).value),
             "resync_m": float(p("resync_m", 0.05).value),
+            "irregularity_source": str(p("irregularity_source", "vehicle").value),
+            "max_lag_s": float(p("max_lag_s", 6.0).value),
         }
+        self.idle_flush_s = float(p("idle_flush_s", 2.0).value)
+        self.last_input = time.monotonic()
+        self.said: set = set()
         self.core = None
         self.early: list = []
         self.pending_params = None
@@ -85,6 +100,26 @@ class TwinNode(Node):
         self.create_subscription(TwinParameters, TOPIC_PARAMETERS, self._on_params, qos_for(TOPIC_PARAMETERS))
         self.n_in = 0
         self.n_out = 0
+        self.create_timer(0.5, self._idle)
+
+    def _once(self, key: str, text: str) -> None:
+        if key not in self.said:
+            self.said.add(key)
+            self.get_logger().info(text)
+
+    def _idle(self) -> None:
+        """End of the stream (no input for idle_flush_s): step what is queued, publish it."""
+        if self.core is None or not self.core.queued_position_blocks:
+            return
+        if time.monotonic() - self.last_input < self.idle_flush_s:
+            return
+        from maglev_ros.errors import UserError
+        try:
+            outs = self.core.finish()
+        except UserError as exc:
+            self.get_logger().error(f"twin: {exc}")
+            return
+        self._publish(outs)
 
     # ------------------------------------------------------------------ inputs
     def _on_metadata(self, msg) -> None:
@@ -94,7 +129,9 @@ class TwinNode(Node):
             md = json.loads(msg.data)
             self.core = OnlineTwin(md, psd=self.opts["psd"], band_m=self.opts["band_m"], seed=self.opts["seed"],
                                    method=self.opts["method"], fs_hz=self.opts["fs_hz"],
-                                   dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"])
+                                   dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"],
+                                   irregularity_source=self.opts["irregularity_source"],
+                                   max_lag_s=self.opts["max_lag_s"])
         except (UserError, ValueError) as exc:
             self.get_logger().error(f"/testline/metadata: cannot build the twin: {exc}")
             self.core = None
@@ -113,6 +150,7 @@ class TwinNode(Node):
         def on_msg(msg) -> None:
             blk = _to_block(msg)
             self.n_in += 1
+            self.last_input = time.monotonic()
             if self.core is None:
                 if len(self.early) < MAX_EARLY_BLOCKS:
                     self.early.append((topic, blk))
@@ -127,9 +165,20 @@ class TwinNode(Node):
         except UserError as exc:
             self.get_logger().error(f"{topic}: {exc}")
             return
+        self._publish(outs)
+
+    def _publish(self, outs) -> None:
         for o in outs:
             self.pubs[o.predicted_topic].publish(_to_msg(o.predicted))
-            self.pubs[o.residual_topic].publish(_to_msg(o.residual))
+            if o.valid:
+                self.pubs[o.residual_topic].publish(_to_msg(o.residual))
+                if o.group.startswith("vehicle"):
+                    self._once("valid", f"{o.residual_topic}: publishing residuals from stamp "
+                                        f"{o.residual.stamp_ns * 1e-9:.3f} s (measured irregularity under "
+                                        f"every magnet, source {self.core.irregularity_source})")
+            else:
+                self._once("withheld", f"{o.residual_topic}: withheld while the measured irregularity does "
+                                       f"not cover every magnet (source {self.core.irregularity_source})")
             self.n_out += 1
 
     def _on_params(self, msg) -> None:
@@ -149,7 +198,11 @@ class TwinNode(Node):
             self.pending_profile = msg
             return
         try:
-            self.core.set_irregularity_profile(msg.start_position_m, msg.spacing_m, list(msg.irregularity_m))
+            used = self.core.set_irregularity_profile(msg.start_position_m, msg.spacing_m, list(msg.irregularity_m))
+            if not used:
+                self._once("profile_ignored", f"{TOPIC_IRREGULARITY}: not used; the twin measures its own "
+                                              f"point-magnet profile (irregularity_source "
+                                              f"{self.core.irregularity_source})")
         except UserError as exc:
             self.get_logger().error(f"{TOPIC_IRREGULARITY}: {exc}")
 

@@ -26,8 +26,39 @@ Time step: the twin outputs at ``fs_hz`` (default: the fastest measured rate) wi
 of at most ``dt_max_s`` (default 0.25 ms: the Newmark period error of a 200 Hz girder mode is then
 ~1 %; at the 1 ms design default it is ~13 % and residuals near the span ends grow to ~10 %).
 
-Irregularity: until ``set_irregularity`` / ``set_irregularity_profile`` is called the twin uses
-one random sample of a reference PSD (``psd``, ``band_m``, ``seed``), periodic over ~3.3 km.
+Irregularity (``irregularity_source``; the vehicle channels are only judged against a measured one):
+
+- ``"vehicle"`` (default): the twin measures the irregularity itself from the recording's vehicle
+  streams it already receives: an :class:`~maglev_ros.irregularity.profile.IncrementalProfiler`
+  (inertial reference method) fed /testline/vehicle/{accel,gap,position}, configured for a
+  point-magnet twin like :mod:`maglev_ros.irregularity.twin_input` (``magnet_length_m`` 0,
+  ``spacing_m`` 0.02 m, ``highpass_hz`` 0.8 Hz, band speed 80 % of the metadata's nominal speed;
+  override with ``profiler_options``). Why not the irregularity node's /maglev/irregularity: that
+  is a geometry product (3 m magnet length, 0.25 m grid) whose band leaves out the short waves
+  (stator-pack joints, < 3 m) that dominate the magnet accelerations, so a twin driven by it
+  cannot reproduce them. The profile is "loaded" (it contains the girder deflection under the
+  magnets, which the twin adds again); within the 0.8 Hz band at test-line speeds that deflection
+  (span-length waves) is mostly outside the band, so the error is small (choice: no loaded ->
+  unloaded iteration online).
+- ``"topic"``: the profile comes from ``set_irregularity_profile`` calls (the irregularity node's
+  message), with the same coverage rules.
+- ``"random"``: one random sample of a reference PSD (``psd``, ``band_m``, ``seed``), periodic over
+  ~3.3 km -- an invented profile: vehicle residuals are never valid.
+- an explicit ``irregularity=`` (the known truth in a test, a surveyed profile): used everywhere,
+  vehicle residuals always valid.
+
+Coverage and lag: with a measured source, positions without a valid profile sample take zero
+irregularity (joined by a half-cosine taper of ``taper_m`` inside each valid stretch). The leading
+magnet measures the rail before the trailing ones arrive, but the profiler can only finish a stretch
+after its filter edges (~1-2 s at 0.8 Hz): the twin therefore steps the vehicle only up to the time
+at which the profile reaches ``ahead_m`` beyond the leading magnet, lagging the stream by at most
+``max_lag_s`` (beyond that it steps on with zero irregularity ahead). Guideway outputs come from
+the same stepper, so they lag by the same amount but are always valid (the guideway response is
+dominated by the moving load, not by the rail irregularity). A vehicle output sample is VALID
+when every magnet of the vehicle has been over the measured stretch (inside its tapers) for at
+least ``settle_s`` (the control transient after entering from zero irregularity, and the static
+start). Invalid vehicle samples get NaN residuals and the output's ``valid`` flag is False (the
+node does not publish such residual blocks; predictions are published).
 A profile holds between its first and last sample and its end values beyond them.
 
 Parameters: ``set_parameters(names, values)`` adopts dotted design-block paths, e.g.
@@ -56,7 +87,7 @@ from maglev_ros.twin.coupling import Irregularity, TwinStepper
 from maglev_ros.twin.design import twin_config
 
 __all__ = ["GROUP_TOPICS", "TOPIC_GROUPS", "PREDICTED_PREFIX", "RESIDUAL_PREFIX", "TwinOutput",
-           "OnlineTwin", "periodic_random_irregularity", "nrmse"]
+           "OnlineTwin", "periodic_random_irregularity", "nrmse", "IRREGULARITY_SOURCES"]
 
 GROUP_TOPICS = {"guideway_accel": TOPIC_GUIDEWAY_ACCEL, "guideway_displacement": TOPIC_GUIDEWAY_DISP,
                 "vehicle_accel": TOPIC_VEHICLE_ACCEL, "vehicle_gap": TOPIC_VEHICLE_GAP}
@@ -64,6 +95,13 @@ TOPIC_GROUPS = {t: g for g, t in GROUP_TOPICS.items()}
 PREDICTED_PREFIX = "/maglev/twin/predicted/"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
 _DESIGN_SECTIONS = ("guideway", "vehicle", "levitation")
+IRREGULARITY_SOURCES = ("vehicle", "topic", "random")
+_PROFILER_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap"}
+
+
+def _as_irr(obj):
+    from maglev_ros.twin.coupling import as_irregularity
+    return as_irregularity(obj)
 
 
 @dataclass(frozen=True)
@@ -73,6 +111,7 @@ class TwinOutput:
     measured: Block
     predicted: Block
     residual: Block
+    valid: bool = True              # False: some residual samples are NaN (vehicle not covered)
 
     @property
     def predicted_topic(self) -> str:
@@ -135,10 +174,13 @@ def _set_path(doc: dict, parts: list[str], value: float, name: str) -> None:
 class OnlineTwin:
     """See module docstring. ``on_block(topic, block)`` returns the finished ``TwinOutput``s."""
 
-    def __init__(self, metadata: Metadata | Mapping, *, irregularity: Any = None, psd: str = "maglev_001",
+    def __init__(self, metadata: Metadata | Mapping, *, irregularity: Any = None,
+                 irregularity_source: str = "vehicle", psd: str = "maglev_001",
                  band_m: Sequence[float] = (1.0, 20.0), seed: int = 0, method: str = "newmark",
                  fs_hz: float | None = None, dt_max_s: float | None = 2.5e-4, resync_m: float = 0.05,
-                 max_pending_s: float = 30.0, parameters: Mapping[str, float] | None = None):
+                 max_pending_s: float = 30.0, parameters: Mapping[str, float] | None = None,
+                 max_lag_s: float = 6.0, ahead_m: float = 0.5, taper_m: float = 0.5, settle_s: float = 0.5,
+                 profile_period_s: float = 0.5, profiler_options: Mapping[str, Any] | None = None):
         md = metadata if isinstance(metadata, Metadata) else metadata_from_dict(dict(metadata), "twin metadata")
         self.metadata = md
         self.kind = md.run_kind
@@ -151,8 +193,24 @@ class OnlineTwin:
         self.spans: list[dict] = [dict(s) for s in md.raw["line"]["spans"]]
         self.parameters: dict[str, float] = {}
         self._psd = (psd, tuple(float(b) for b in band_m), int(seed))
-        self._irr = irregularity
+        if irregularity_source not in IRREGULARITY_SOURCES:
+            raise UserError(f"twin irregularity_source: expected one of {', '.join(IRREGULARITY_SOURCES)}, "
+                            f"got {irregularity_source!r}")
+        self.irregularity_source = "fixed" if irregularity is not None else irregularity_source
+        self._irr = None if irregularity is None else _as_irr(irregularity)
         self._default_irr = None
+        self.max_lag_s, self.ahead_m = float(max_lag_s), float(ahead_m)
+        self.taper_m, self.settle_s = float(taper_m), float(settle_s)
+        self.profile_period_s = float(profile_period_s)
+        self.profile_stretches: list[tuple[float, float]] = []   # covered (inside the tapers)
+        self.n_profile_updates = 0
+        self.n_forced = 0                      # position blocks stepped without a profile ahead
+        self._profiler = None
+        self._profiler_options = dict(profiler_options or {})
+        self._profile_at_s = -math.inf         # stream time of the last profile refresh
+        self._newest_s = -math.inf             # newest measured sample time seen (stream seconds)
+        self._pos_queue: deque[Block] = deque()
+        self._uncovered_s = -math.inf          # twin time of the last vehicle sample not covered
         self.stepper: TwinStepper | None = None
         self.t0_ns: int | None = None
         self.revision = 0
@@ -178,8 +236,19 @@ class OnlineTwin:
         # buffers
         self._pending: deque[tuple[str, Block]] = deque()
         self._buf_t: list[np.ndarray] = []
-        self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": []}
+        self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": [], "ok": []}
         self._seen_position = False
+        self._offsets = np.asarray(md.magnet_offsets_m if self.kind == "pass" else (), float)
+        if self.irregularity_source == "vehicle" and self.kind == "pass" and self._offsets.size:
+            from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
+            opts = {"highpass_hz": 0.8, "spacing_m": 0.02, "magnet_length_m": 0.0, "max_profile_m": 2000.0,
+                    "band_speed_mps": 0.8 * md.nominal_speed_mps if md.nominal_speed_mps else None}
+            opts.update(self._profiler_options)
+            try:
+                self._profiler = IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m or 0.010,
+                                                     channel_pairs=magnet_channel_pairs(md), **opts)
+            except TypeError as exc:
+                raise UserError(f"twin profiler_options: {exc}") from None
 
     # ---------------------------------------------------------------------------- config
     def _build_config(self, design: dict | None = None):
@@ -230,6 +299,8 @@ class OnlineTwin:
     def _irregularity(self):
         if self._irr is not None:
             return self._irr
+        if self.irregularity_source != "random":
+            return _as_irr(None)                   # no measured profile yet: zero (the expected value)
         if self._default_irr is None:
             name, band, seed = self._psd
             start = min(s.start_m for s in self.metadata.spans) - 1000.0
@@ -237,27 +308,61 @@ class OnlineTwin:
         return self._default_irr
 
     def set_irregularity(self, irregularity: Any) -> None:
-        """Use this irregularity (anything ``coupling.as_irregularity`` takes) from now on."""
-        from maglev_ros.twin.coupling import as_irregularity
-        self._irr = as_irregularity(irregularity)
+        """Use this KNOWN irregularity (anything ``coupling.as_irregularity`` takes) from now on,
+        everywhere; vehicle residuals are then always valid (``irregularity_source`` becomes fixed)."""
+        self.irregularity_source = "fixed"
+        self._profiler = None
+        self._apply_irr(irregularity)
+
+    def _apply_irr(self, irregularity: Any) -> None:
+        self._irr = _as_irr(irregularity)
         if self.stepper is not None:
             self.stepper.set_irregularity(self._irr)
 
-    def set_irregularity_profile(self, start_position_m: float, spacing_m: float, values: Sequence[float]) -> None:
-        """From an IrregularityProfile message: samples every ``spacing_m`` from ``start_position_m``."""
+    @property
+    def vehicle_judged(self) -> bool:
+        """Whether vehicle residuals can ever be valid (not with an invented irregularity)."""
+        return self.irregularity_source != "random"
+
+    def _set_measured(self, x: np.ndarray, r: np.ndarray) -> None:
+        """A measured profile (NaN = not measured): zero outside its valid stretches, half-cosine
+        tapers of ``taper_m`` inside them; coverage = the stretches inside the tapers."""
+        ok = np.isfinite(r)
+        if ok.sum() < 2:
+            return
+        dx = float(np.median(np.diff(x)))
+        w = np.zeros(r.size)
+        stretches = []
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+        for i0, i1 in zip(edges[::2], edges[1::2]):
+            lo, hi = float(x[i0]), float(x[i1 - 1])
+            if hi - lo <= 2 * self.taper_m + dx:
+                continue
+            xs = x[i0:i1]
+            d = np.minimum(xs - lo, hi - xs) / max(self.taper_m, 1e-12)
+            w[i0:i1] = np.where(d >= 1.0, 1.0, 0.5 - 0.5 * np.cos(np.pi * np.clip(d, 0.0, 1.0)))
+            stretches.append((lo + self.taper_m, hi - self.taper_m))
+        if not stretches:
+            return
+        self.profile_stretches = stretches
+        self.n_profile_updates += 1
+        self._apply_irr((x, np.where(ok, r, 0.0) * w))
+
+    def set_irregularity_profile(self, start_position_m: float, spacing_m: float, values: Sequence[float]) -> bool:
+        """From an IrregularityProfile message: samples every ``spacing_m`` from ``start_position_m``
+        (NaN = not measured). Used with the coverage rules (module docstring) unless the twin
+        measures its own profile (``irregularity_source`` vehicle) or has a known one (fixed):
+        then the message is ignored and False is returned. A random source switches to topic."""
         r = np.asarray(values, dtype=float)
         ok = np.isfinite(r)
         if ok.sum() < 2 or not spacing_m > 0:
             raise UserError(f"irregularity profile: expected >= 2 finite samples and spacing_m > 0, "
                             f"got {int(ok.sum())} finite of {r.size} samples, spacing {spacing_m!r}")
-        x = float(start_position_m) + float(spacing_m) * np.arange(r.size)
-        # Positions without a valid estimate (edges, dropouts) carry no information: the twin
-        # takes zero there (the expected irregularity), joined linearly to the estimated stretches.
-        idx = np.flatnonzero(ok)
-        r = np.where(ok, r, 0.0)
-        inner = (~ok) & (np.arange(r.size) > idx[0]) & (np.arange(r.size) < idx[-1])
-        r[inner] = np.interp(x[inner], x[ok], r[ok])
-        self.set_irregularity((x, r))
+        if self.irregularity_source in ("vehicle", "fixed"):
+            return False
+        self.irregularity_source = "topic"
+        self._set_measured(float(start_position_m) + float(spacing_m) * np.arange(r.size), r)
+        return True
 
     # ---------------------------------------------------------------------------- stepping
     def _new_stepper(self, t0_s: float, position_m: float, speed_mps: float) -> TwinStepper:
@@ -270,6 +375,7 @@ class OnlineTwin:
     def _rebuild(self) -> None:
         st = self.stepper
         self.stepper = self._new_stepper(st.time_s, st.position_m, st.speed_mps)
+        self._uncovered_s = max(self._uncovered_s, st.time_s)     # restart transient: settle again
 
     def _start(self, stamp_ns: int, position_m: float, speed_mps: float) -> None:
         if self.fs_hz is None:
@@ -278,31 +384,96 @@ class OnlineTwin:
         dt_ns = int(round(1e9 / self.fs_hz))
         self.t0_ns = int(stamp_ns) - dt_ns
         self.stepper = self._new_stepper(0.0, position_m - speed_mps * dt_ns * 1e-9, speed_mps)
+        self._uncovered_s = 0.0                                   # static start: settle first
 
     def _rel(self, stamp_ns: int) -> float:
         return (int(stamp_ns) - self.t0_ns) * 1e-9
 
+    def _covered(self, position_m: np.ndarray) -> np.ndarray:
+        """Per reference position: every magnet inside one covered profile stretch."""
+        x = np.asarray(position_m, float)
+        if self.irregularity_source == "fixed":
+            return np.ones(x.size, bool)
+        if self.irregularity_source == "random" or not self.profile_stretches or not self._offsets.size:
+            return np.zeros(x.size, bool)
+        lo_x, hi_x = x + self._offsets.min(), x + self._offsets.max()
+        ok = np.zeros(x.size, bool)
+        for lo, hi in self.profile_stretches:
+            ok |= (lo_x >= lo) & (hi_x <= hi)
+        return ok
+
     def _record(self, res) -> None:
         if res.n_samples == 0:
             return
-        self._buf_t.append(res.time_s)
+        cov = self._covered(res.position_m)
+        t = res.time_s
+        if self.irregularity_source == "fixed":
+            ok = cov
+        else:   # valid once every magnet has been covered for settle_s (also after a (re)start)
+            last_bad = np.maximum.accumulate(np.where(cov, -np.inf, t))
+            last_bad = np.maximum(last_bad, self._uncovered_s)
+            self._uncovered_s = float(last_bad[-1])
+            ok = cov & (t - last_bad >= self.settle_s)
+        self._buf_t.append(t)
         self._buf["gd"].append(res.guideway_disp_m)
         self._buf["ga"].append(res.guideway_accel_mps2)
         self._buf["ma"].append(res.magnet_accel_mps2)
         self._buf["mg"].append(res.magnet_gap_m)
+        self._buf["ok"].append(ok.astype(float)[:, None])
 
     def _advance(self, t_end_s: float, speed_mps: float | None) -> None:
         self._record(self.stepper.advance(t_end_s, speed_mps))
 
     def on_position(self, block: Block) -> list[TwinOutput]:
         try:
-            pos = block.channel("position_m").astype(float)
-            vel = block.channel("speed_mps").astype(float)
+            block.channel("position_m")
+            block.channel("speed_mps")
         except UserError as exc:
             raise UserError(f"{TOPIC_VEHICLE_POSITION}: {exc}") from None
         if block.n_samples == 0:
             return []
         self._seen_position = True
+        self._note_time(block)
+        self._pos_queue.append(block)
+        self._pump()
+        return self._flush()
+
+    def _note_time(self, block: Block) -> None:
+        end = block.stamp_ns * 1e-9 + (block.n_samples - 1) / block.sample_rate_hz
+        self._newest_s = max(self._newest_s, end)
+
+    def _refresh_profile(self, force: bool = False) -> None:
+        if self._profiler is None or not (force or self._newest_s - self._profile_at_s >= self.profile_period_s):
+            return
+        self._profile_at_s = self._newest_s
+        try:
+            res = self._profiler.result()
+        except UserError:          # not enough of all three vehicle topics yet
+            return
+        self._set_measured(np.asarray(res.position_m, float), np.asarray(res.irregularity_m, float))
+
+    def _ready(self, block: Block) -> bool:
+        """May the vehicle be stepped to the end of this position block?"""
+        if self.irregularity_source in ("fixed", "random"):
+            return True
+        end_s = block.stamp_ns * 1e-9 + block.n_samples / block.sample_rate_hz
+        if self._newest_s - end_s >= self.max_lag_s:
+            self.n_forced += 1
+            return True
+        pos = block.channel("position_m").astype(float)
+        lead = float(np.max(pos)) + float(self._offsets.max(initial=0.0)) + self.ahead_m
+        if self.profile_stretches and self.profile_stretches[-1][1] >= lead:
+            return True
+        self._refresh_profile()
+        return bool(self.profile_stretches) and self.profile_stretches[-1][1] >= lead
+
+    def _pump(self) -> None:
+        while self._pos_queue and self._ready(self._pos_queue[0]):
+            self._step_position(self._pos_queue.popleft())
+
+    def _step_position(self, block: Block) -> None:
+        pos = block.channel("position_m").astype(float)
+        vel = block.channel("speed_mps").astype(float)
         if self.stepper is None:
             self._start(block.stamp_ns, float(pos[0]), float(vel[0]))
         dt = 1.0 / block.sample_rate_hz
@@ -312,15 +483,33 @@ class OnlineTwin:
         if abs(self.stepper.position_m - expect) > self.resync_m:
             self.stepper.position_m = expect
             self.n_resync += 1
+
+    @property
+    def queued_position_blocks(self) -> int:
+        """Position blocks received but not yet stepped (waiting for the profile)."""
+        return len(self._pos_queue)
+
+    def finish(self) -> list[TwinOutput]:
+        """End of the recording: step every queued position block with the final profile."""
+        self._refresh_profile(force=True)
+        while self._pos_queue:
+            self._step_position(self._pos_queue.popleft())
         return self._flush()
 
     def on_block(self, topic: str, block: Block) -> list[TwinOutput]:
         """Feed one block of any recording topic; returns the outputs finished by it."""
         if topic == TOPIC_VEHICLE_POSITION:
+            if self._profiler is not None and block.n_samples:
+                self._profiler.partial_fit(position=block)
             return self.on_position(block)
         if topic not in TOPIC_GROUPS or block.n_samples == 0:
             return []
         self._pending.append((topic, block))
+        self._note_time(block)
+        if self._profiler is not None and topic in _PROFILER_KEYS:
+            self._profiler.partial_fit(**{_PROFILER_KEYS[topic]: block})
+        if self._pos_queue:
+            self._pump()
         if self.stepper is None and (self.kind == "ambient"):
             self._start(block.stamp_ns, min(s.start_m for s in self.metadata.spans) - 1.0e4, 0.0)
         if self.stepper is not None and (self.kind == "ambient" or not self._seen_position):
@@ -400,13 +589,20 @@ class OnlineTwin:
                 pred[:, c] /= conv[1]
         meas = blk.data[:, cols].astype(float)
         chans = tuple(blk.channels[j] for j in cols)
+        res = meas - pred
+        valid = True
+        if topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP):
+            ok = np.interp(tb, t, buf["ok"][:, 0]) > 0.999       # nearest output samples all valid
+            if not ok.all():
+                res[~ok] = np.nan
+                valid = False
         p_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, pred, "twin")
-        r_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, meas - pred, "twin")
-        return TwinOutput(group, blk, p_blk, r_blk)
+        r_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, res, "twin")
+        return TwinOutput(group, blk, p_blk, r_blk, valid)
 
     def feed(self, items: Iterable[tuple[str, Block]]) -> list[TwinOutput]:
         """Convenience: feed (topic, block) pairs in stream order; returns all outputs."""
         out = []
         for topic, blk in items:
             out += self.on_block(topic, blk)
-        return out
+        return out + self.finish()

@@ -12,10 +12,18 @@ Decisions (choices; the paper updates offline):
   flagged in the provenance).
 - Magnet layer: the vehicle-acceleration residual stream (/maglev/twin/residual/vehicle_accel) is
   compared with the measured magnet accelerations of the same stamps (buffered from
-  /testline/vehicle/accel). When at least ``magnet_min_s`` seconds of residual evidence of a moving
-  vehicle exist and the residual NRMSE exceeds ``nrmse_trigger``, the magnet layer runs on the
-  buffered window (accel, gap, position; at most ``max_window_s``) with the current guideway.
-  Accepted when its NRMSE on that window is below the current parameters' NRMSE.
+  /testline/vehicle/accel for ``max_window_s + max_lag_s``: the twin lags the stream while it
+  waits for the measured irregularity). Only valid residual blocks count: a block with NaN (the
+  twin had no measured irregularity under every magnet) or a gap of more than ``max_gap_s`` in the
+  residual stream restarts the evidence window, so vehicle residuals are judged only where the
+  twin used the measured profile. When at least ``magnet_min_s`` seconds of contiguous valid
+  evidence exist (at most ``max_window_s``) and its NRMSE exceeds ``nrmse_trigger``, the magnet
+  layer runs on THAT window (accel, gap, position cut to it) with the current guideway, and only if
+  the window contains what it needs: accel + gap of the same magnets and position over the window,
+  speed above ``min_speed_mps`` throughout, and a valid irregularity
+  (``irregularity.twin_input.profile_for_twin`` succeeds on the window; no fallback reconstruction
+  online). Otherwise it logs once why it waits (``wait``; the node prints ``log``). Accepted when
+  its NRMSE on that window is below the current parameters' NRMSE.
 - Restart: ``restore()`` returns the last accepted record of the history (republished as is).
 
 Published parameter names are the twin's dotted design paths (``guideway.youngs_modulus_pa``,
@@ -40,6 +48,13 @@ from maglev_ros.updating.history import ParameterHistory
 from maglev_ros.updating.magnet_layer import MagnetLayer, PassEvidence, nrmse
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
 from maglev_ros.updating.pipeline import TWIN_NAMES, PassRecording, modal_target, pass_evidence
+
+
+def _stretches(mask: np.ndarray, x: np.ndarray) -> list[tuple[float, float]]:
+    """(first, last) x of each run of True in ``mask``."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    return [(float(x[i0]), float(x[i1 - 1])) for i0, i1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
 
 
 @dataclass(frozen=True)
@@ -75,13 +90,18 @@ class OnlineUpdater:
     def __init__(self, history_path, *, freq_rel_tol: float = 2e-3, n_sigma: float = 3.0, max_modes: int = 4,
                  guideway_layer: GuidewayLayer | None = None, magnet_layer: MagnetLayer | None = None,
                  magnet_min_s: float = 3.0, nrmse_trigger: float = 0.15, max_window_s: float = 8.0,
-                 magnet_fs_hz: float = 500.0):
+                 magnet_fs_hz: float = 500.0, max_lag_s: float = 10.0, max_gap_s: float = 0.05,
+                 min_speed_mps: float = 0.1, highpass_hz: float = 1.0):
         self.history = ParameterHistory(history_path)
         self.freq_rel_tol, self.n_sigma, self.max_modes = float(freq_rel_tol), float(n_sigma), int(max_modes)
         self.guideway_layer = guideway_layer or GuidewayLayer(n_particles=40, n_iterations=40, archive_size=40)
         self.magnet_layer = magnet_layer or MagnetLayer(n_samples=30, polish_max_nfev=15)
         self.magnet_min_s, self.nrmse_trigger = float(magnet_min_s), float(nrmse_trigger)
         self.max_window_s, self.magnet_fs_hz = float(max_window_s), float(magnet_fs_hz)
+        self.max_lag_s, self.max_gap_s = float(max_lag_s), float(max_gap_s)
+        self.min_speed_mps, self.highpass_hz = float(min_speed_mps), float(highpass_hz)
+        self.last_residual_nrmse: float | None = None
+        self._said: set[str] = set()
         self.md: Metadata | None = None
         self.nominal = None
         self.current: dict[str, dict] = {}          # accepted parameters (maglev-params/1 entries)
@@ -164,6 +184,12 @@ class OnlineUpdater:
         return self._accept(params, data_used, fit)
 
     # ------------------------------------------------------------------ magnet layer
+    def wait(self, key: str, text: str) -> None:
+        """Log why the magnet layer waits, once per reason (``key``) until the layer next runs."""
+        if key not in self._said:
+            self._said.add(key)
+            self.log.append(f"magnet layer waits: {text}")
+
     def on_vehicle_block(self, topic: str, block) -> None:
         if topic in self._buf:
             self._buf[topic].append(block)
@@ -171,107 +197,179 @@ class OnlineUpdater:
 
     def _trim(self, topic: str) -> None:
         b = self._buf[topic]
-        while len(b) > 1 and (b[-1].times_s()[-1] - b[0].times_s()[0]) > self.max_window_s:
+        horizon = self.max_window_s + self.max_lag_s
+        while len(b) > 1 and (b[-1].times_s()[-1] - b[0].times_s()[0]) > horizon:
             b.pop(0)
 
-    def _series(self, topic: str):
-        b = self._buf[topic]
+    def _series(self, topic: str, t0: float = -math.inf, t1: float = math.inf):
+        b = [x for x in self._buf[topic] if x.n_samples and x.times_s()[-1] >= t0 and x.times_s()[0] <= t1]
         if not b:
             return None, None, ()
         t = np.concatenate([x.times_s() for x in b])
         d = np.concatenate([np.asarray(x.data, float) for x in b])
-        return t, d, b[-1].channels
+        keep = (t >= t0) & (t <= t1)
+        return t[keep], d[keep], b[-1].channels
 
     def residual_ready(self, block) -> float | None:
         """Buffer a /maglev/twin/residual/vehicle_accel block; returns the residual NRMSE when the
-        magnet layer should run (enough moving-vehicle evidence and NRMSE > ``nrmse_trigger``)."""
+        magnet layer should run: at least ``magnet_min_s`` of contiguous, valid (finite) residual
+        evidence of a moving vehicle whose NRMSE exceeds ``nrmse_trigger``. A block with a NaN
+        sample (the twin did not have the measured irregularity under every magnet) or a gap in the
+        residual stream restarts the evidence window."""
+        if block.n_samples == 0:
+            return None
+        data = np.asarray(block.data, float)
+        if not np.all(np.isfinite(data)):
+            self._res.clear()
+            self.wait("invalid", "the twin's vehicle residual is not valid yet (no measured irregularity "
+                                 "under every magnet)")
+            return None
+        if self._res:
+            gap_s = block.times_s()[0] - self._res[-1].times_s()[-1]
+            if gap_s > 2.0 / block.sample_rate_hz + self.max_gap_s or gap_s <= 0:
+                self._res.clear()
         self._res.append(block)
         while len(self._res) > 1 and (self._res[-1].times_s()[-1] - self._res[0].times_s()[0]) > self.max_window_s:
             self._res.pop(0)
         span_s = self._res[-1].times_s()[-1] - self._res[0].times_s()[0]
-        if self.md is None or span_s < self.magnet_min_s:
+        if self.md is None:
+            self.wait("metadata", "no /testline/metadata yet")
             return None
-        ta, a, ach = self._series(TOPIC_VEHICLE_ACCEL)
-        if ta is None:
+        if span_s < self.magnet_min_s:
+            self.wait("short", f"{span_s:.1f} s of valid residual evidence, need {self.magnet_min_s:g} s")
             return None
         tr = np.concatenate([x.times_s() for x in self._res])
+        ta, a, ach = self._series(TOPIC_VEHICLE_ACCEL, tr[0], tr[-1])
+        if ta is None or ta[0] > tr[0] + 0.05 or ta[-1] < tr[-1] - 0.05:
+            self.wait("accel", f"measured {TOPIC_VEHICLE_ACCEL} does not cover the residual window "
+                               f"{tr[0]:.2f}-{tr[-1]:.2f} s")
+            return None
         r = np.concatenate([np.asarray(x.data, float) for x in self._res])
         rch = self._res[-1].channels
         pairs = [(i, ach.index(c)) for i, c in enumerate(rch) if c in ach]
         if not pairs:
+            self.wait("channels", f"no residual channel of {', '.join(rch)} is on {TOPIC_VEHICLE_ACCEL}")
             return None
         meas = np.stack([np.interp(tr, ta, a[:, j]) for _, j in pairs], axis=1)
         res = r[:, [i for i, _ in pairs]]
         e = float(np.sqrt(np.mean(res ** 2)) / max(np.sqrt(np.mean(meas ** 2)), 1e-300))
-        return e if e > self.nrmse_trigger else None
+        self.last_residual_nrmse = e
+        if e <= self.nrmse_trigger:
+            self.wait("fits", f"vehicle residual NRMSE {e:.3f} <= trigger {self.nrmse_trigger:g}: gains fit")
+            return None
+        return e
 
     def on_residual(self, block) -> Publication | None:
         """``residual_ready`` then, when warranted, ``run_magnet_layer`` (synchronous)."""
         e = self.residual_ready(block)
         if e is None:
             return None
+        job = self.snapshot_magnet_job()
         self._res.clear()
-        return self.run_magnet_layer(residual_nrmse=e)
+        return self.accept_magnet_update(self.compute_magnet_update(job, e))
 
     def run_magnet_layer(self, residual_nrmse: float | None = None) -> Publication | None:
-        """Synchronous: snapshot, compute, accept."""
+        """Synchronous: snapshot (the current residual window), compute, accept."""
         return self.accept_magnet_update(self.compute_magnet_update(self.snapshot_magnet_job(), residual_nrmse))
 
     def snapshot_magnet_job(self) -> dict:
-        """Copies of what the magnet layer needs (buffered vehicle window, metadata, current config),
-        so ``compute_magnet_update`` can run without the caller's lock."""
-        return {"series": {tp: self._series(tp) for tp in self._buf}, "md": self.md,
+        """Copies of what the magnet layer needs: the vehicle streams over the ``max_window_s``
+        ending with the residual evidence window (the irregularity reconstruction needs several
+        seconds of context: its high-pass edges), position with 1 s margins, metadata, current
+        config; ``compute_magnet_update`` then runs without the caller's lock."""
+        if self._res:
+            t1 = self._res[-1].times_s()[-1]
+            t0 = min(self._res[0].times_s()[0], t1 - self.max_window_s)
+        else:
+            t0, t1 = -math.inf, math.inf
+        series = {tp: self._series(tp, t0 - (1.0 if tp == TOPIC_VEHICLE_POSITION else 0.0),
+                                   t1 + (1.0 if tp == TOPIC_VEHICLE_POSITION else 0.0)) for tp in self._buf}
+        return {"series": series, "window_s": (t0, t1), "md": self.md,
                 "config": self.config() if self.nominal is not None else None}
 
     def compute_magnet_update(self, job: dict, residual_nrmse: float | None = None) -> dict | None:
         """The magnet layer on a snapshot (long; touches no state). Returns a result for
-        ``accept_magnet_update`` or None."""
+        ``accept_magnet_update`` (with a ``log`` line when the window lacks what the layer needs:
+        accel + gap + position of the magnets over the window, speed > ``min_speed_mps``
+        throughout, a valid irregularity from ``profile_for_twin``; the layer is not run then)."""
         md, cfg = job["md"], job["config"]
         ta, a, ach = job["series"][TOPIC_VEHICLE_ACCEL]
         tg, g, gch = job["series"][TOPIC_VEHICLE_GAP]
         tp, p, pch = job["series"][TOPIC_VEHICLE_POSITION]
         if md is None or cfg is None:
-            return {"log": "magnet layer: no metadata yet"}
-        if ta is None or tg is None or tp is None or "position_m" not in pch or "speed_mps" not in pch:
-            return {"log": "magnet layer: vehicle accel/gap/position not buffered"}
+            return {"log": "magnet layer: no metadata yet", "wait": "metadata"}
+        for name, tt, n_min in ((TOPIC_VEHICLE_ACCEL, ta, 64), (TOPIC_VEHICLE_GAP, tg, 64),
+                                (TOPIC_VEHICLE_POSITION, tp, 4)):
+            if tt is None or tt.size < n_min:
+                return {"log": f"magnet layer: {name} not buffered over the residual window", "wait": "buffer"}
+        if "position_m" not in pch or "speed_mps" not in pch:
+            return {"log": f"magnet layer: {TOPIC_VEHICLE_POSITION} lacks position_m/speed_mps", "wait": "position"}
         sens = md.sensors
         ma = {sens[c].magnet: i for i, c in enumerate(ach) if c in sens and sens[c].magnet}
         mg = {sens[c].magnet: i for i, c in enumerate(gch) if c in sens and sens[c].magnet}
         mags = sorted(set(ma) & set(mg))
-        spd = p[:, pch.index("speed_mps")]
-        if not mags or np.median(spd) <= 0.1:
-            return None
-        from types import SimpleNamespace as NS
+        if not mags:
+            return {"log": "magnet layer: no magnet has both an acceleration and a gap channel", "wait": "magnets"}
         lo, hi = max(ta[0], tg[0], tp[0]), min(ta[-1], tg[-1], tp[-1])
+        # start after the last slow (or invalid) position sample: the window must be a moving pass
+        spd_all = p[:, pch.index("speed_mps")]
+        slow = (tp <= hi) & ~(np.isfinite(spd_all) & (spd_all > self.min_speed_mps))
+        if slow.any():
+            lo = max(lo, float(tp[slow][-1]) + 1e-9)
         keep = (ta >= lo) & (ta <= hi)
+        if hi - lo < self.magnet_min_s or keep.sum() < 64:
+            why = ("vehicle slower than %g m/s" % self.min_speed_mps) if slow.any() else "accel/gap/position overlap"
+            return {"log": f"magnet layer: only {max(hi - lo, 0):.1f} s of moving window with accel+gap+position "
+                           f"({why}), need {self.magnet_min_s:g} s", "wait": "window"}
         keep_p = (tp >= lo - 1.0) & (tp <= hi + 1.0)
+        from types import SimpleNamespace as NS
+        from maglev_ros.irregularity.twin_input import profile_for_twin
+        from maglev_ros.updating.magnet_layer import make_evidence
         fs = 1.0 / float(np.median(np.diff(ta[keep])))
         acc = NS(time_s=ta[keep], data=a[keep], channels=tuple(ach), sample_rate_hz=fs)
-        gap = NS(time_s=tg, data=g, channels=tuple(gch), sample_rate_hz=None)
+        keep_g = (tg >= lo) & (tg <= hi)
+        fs_g = 1.0 / float(np.median(np.diff(tg[keep_g])))
+        gap = NS(time_s=tg[keep_g], data=g[keep_g], channels=tuple(gch), sample_rate_hz=fs_g)
         posd = p[keep_p][:, [pch.index("position_m"), pch.index("speed_mps")]]
         pos = NS(time_s=tp[keep_p], data=posd, channels=("position_m", "speed_mps"), sample_rate_hz=None,
                  channel=lambda n, _d=posd: _d[:, ("position_m", "speed_mps").index(n)])
         pairs = {m: [ach[ma[m]], gch[mg[m]]] for m in mags}
-        rec = PassRecording(acc, gap, pos, tuple(mags), None, {"channel_pairs": pairs}, md, "online window")
         line = md.raw["line"]
-        logs: list[str] = []
-        ev = pass_evidence(rec, cfg, line, magnet_fs_hz=self.magnet_fs_hz, log=logs.append)
+        try:
+            ti = profile_for_twin(acc, gap, pos, md, cfg, line, highpass_hz=self.highpass_hz, channel_pairs=pairs)
+        except (UserError, ValueError, np.linalg.LinAlgError) as exc:
+            return {"log": f"magnet layer: no valid irregularity on the window ({type(exc).__name__}: {exc})",
+                    "wait": "irregularity"}
+        t = acc.time_s
+        a_m = np.asarray(acc.data, float)[:, [ach.index(pairs[m][0]) for m in mags]]
+        v_max = float(np.max(np.abs(posd[:, 1])))
+        band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
+        try:
+            ev = make_evidence(t, a_m, mags, pos.time_s, posd[:, 0], posd[:, 1], ti.as_twin_input(),
+                               md.magnet_offsets_m, valid_range_m=_stretches(ti.valid, ti.position_m), band_hz=band,
+                               model_fs_hz=self.magnet_fs_hz, skip_s=0.3, margin_m=ti.taper_m + 1.0,
+                               label="online window", irregularity_method="profile_for_twin")
+        except UserError as exc:
+            return {"log": f"magnet layer: {exc}", "wait": "evidence"}
         up = self.magnet_layer.fit(cfg, line, [ev])
-        t = ta[keep] - ta[keep][0]
-        data_used = {"kind": "vehicle window", "t0_s": float(ta[keep][0]), "duration_s": float(t[-1]),
-                     "magnets": mags, "irregularity": rec.info["irregularity"]["method"],
-                     "irregularity_failure": rec.info["irregularity"].get("reason"),
+        data_used = {"kind": "vehicle window", "t0_s": float(t[0]), "duration_s": float(t[-1] - t[0]),
+                     "magnets": mags, "irregularity": "irregularity.twin_input.profile_for_twin",
+                     "irregularity_band_m": [ti.min_wavelength_m, ti.max_wavelength_m],
                      "residual_nrmse": residual_nrmse}
-        return {"update": up, "data_used": data_used, "log": "; ".join(logs) or None}
+        return {"update": up, "data_used": data_used, "log": None}
 
     def accept_magnet_update(self, result: dict | None) -> Publication | None:
         if result is None:
             return None
         if result.get("log"):
-            self.log.append(result["log"])
+            if result.get("wait"):
+                self.wait(result["wait"], result["log"].removeprefix("magnet layer: "))
+            else:
+                self.log.append(result["log"])
         up = result.get("update")
         if up is None:
             return None
+        self._said.clear()
         if not up.nrmse_updated < up.nrmse_nominal:     # "nominal" of the layer = the current gains
             self.log.append(f"magnet update rejected: NRMSE {up.nrmse_updated:.3f} >= {up.nrmse_nominal:.3f}")
             return None
@@ -280,4 +378,5 @@ class OnlineUpdater:
         fit = {"layer": "magnet", "nrmse_before": up.nrmse_nominal, "nrmse_after": up.nrmse_updated,
                "combinations": [c.to_dict() for c in up.identifiability.combinations if c.identifiable],
                "uncertainty": up.uncertainty, "n_model_evaluations": up.n_model_evaluations}
+        self.log.append(f"magnet update accepted: NRMSE {up.nrmse_nominal:.3f} -> {up.nrmse_updated:.3f}")
         return self._accept(params, result["data_used"], fit)

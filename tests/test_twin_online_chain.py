@@ -1,0 +1,193 @@
+"""The online chain twin -> updater without a ROS graph.
+
+References (independent of the code under test):
+- the simulator's own NOISE-FREE response of the same pass (same seed, noise switched off): the
+  online twin, given the true parameters and measuring the irregularity itself from the noisy
+  vehicle streams, must predict it wherever it declares its vehicle residual valid;
+- the measured positions in the bag: a valid vehicle residual may only exist where every magnet
+  was over a stretch of rail the vehicle had ALREADY passed (measured), never ahead of it;
+- the simulator's true gains: the online magnet layer, triggered by the residual stream, must move
+  the published gains toward them.
+"""
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from maglev_ros.bag_reader import BagReader
+from maglev_ros.contract import TOPIC_VEHICLE_POSITION
+from maglev_ros.twin.online import GROUP_TOPICS, OnlineTwin, nrmse
+from maglev_ros.twin.simulate import simulate, truth_paths
+
+CHEAP = ["line.n_spans=3", "free_decay_s=1.0", "rates.oversample=2", "rates.vehicle_hz=1000",
+         "rates.guideway_hz=1000"]
+QUIET = ["instrument.guideway_accel.noise_rms=0", "instrument.guideway_displacement.noise_rms=0",
+         "instrument.vehicle_accel.noise_rms=0", "instrument.vehicle_gap.noise_rms=0"]
+
+
+def _read(bag):
+    with BagReader(bag) as r:
+        return r.metadata, list(r.iter_blocks())
+
+
+def _truth_params(bag):
+    truth = json.loads(truth_paths(bag)[0].read_text())
+    return {f"{sec}.{k}": v for sec, d in truth["truth_design"].items() for k, v in d.items()
+            if isinstance(v, (int, float))}
+
+
+@pytest.mark.parametrize("seed,speed_mps,lead_in_s", [(3, 6.944, 3.0), (8, 9.0, 2.5)])
+def test_twin_measures_the_irregularity_and_judges_the_vehicle_only_where_covered(tmp_path, seed, speed_mps,
+                                                                                 lead_in_s):
+    sets = CHEAP + [f"speed_mps={speed_mps}", f"lead_in_s={lead_in_s}"]
+    noisy = simulate("paper", tmp_path / "noisy", sets=sets, seed=seed).bag
+    quiet = simulate("paper", tmp_path / "quiet", sets=sets + QUIET, seed=seed).bag
+    # same pass, same irregularity: only the instrument noise differs
+    assert truth_paths(noisy)[1].read_text() == truth_paths(quiet)[1].read_text()
+    md, items = _read(noisy)
+    _md, quiet_items = _read(quiet)
+    ref = {(tp, b.stamp_ns): b for tp, b in quiet_items}
+    pos = np.concatenate([b.data for tp, b in items if tp == TOPIC_VEHICLE_POSITION]).astype(float)
+    pos_t = np.concatenate([b.times_s() for tp, b in items if tp == TOPIC_VEHICLE_POSITION])
+    offs = np.asarray(md.magnet_offsets_m, float)
+
+    tw = OnlineTwin(md, parameters=_truth_params(noisy), dt_max_s=5e-4)
+    assert tw.irregularity_source == "vehicle"
+    got, newest = [], -np.inf
+    for tp, b in items + [(None, None)]:
+        outs = tw.finish() if tp is None else tw.on_block(tp, b)
+        if tp == TOPIC_VEHICLE_POSITION:
+            newest = max(newest, float(b.channel("position_m")[-1]))
+        for o in outs:
+            got.append((o, list(tw.profile_stretches), tw.n_profile_updates, newest))
+    veh = [g for g in got if g[0].group.startswith("vehicle")]
+    assert len(veh) == sum(1 for tp, _ in items if tp.startswith("/testline/vehicle/") and tp != TOPIC_VEHICLE_POSITION)
+    # nothing is judged before a measured profile exists
+    assert not any(o.valid or np.isfinite(o.residual.data).any() for o, _s, n, _x in veh if n == 0)
+    n_valid = 0
+    for o, stretches, _n, lead_now in veh:
+        ok = np.all(np.isfinite(o.residual.data), axis=1)
+        assert o.valid == bool(ok.all())
+        if not ok.any():
+            continue
+        x_ref = np.interp(o.measured.times_s()[ok], pos_t, pos[:, 0])
+        lo_x, hi_x = x_ref + offs.min(), x_ref + offs.max()
+        inside = np.zeros(ok.sum(), bool)
+        for lo, hi in stretches:
+            assert hi <= lead_now          # the profile is measured rail, behind the leading magnet
+            inside |= (lo_x >= lo - 0.06) & (hi_x <= hi + 0.06)
+        assert inside.all()                # every magnet over the measured profile
+        n_valid += int(ok.sum())
+    n_all = sum(o.measured.n_samples for o, *_ in veh)
+    assert n_valid > 0.25 * n_all
+    for group in ("vehicle_accel", "vehicle_gap"):
+        outs = [o for o, *_ in veh if o.group == group]
+        ok = np.concatenate([np.all(np.isfinite(o.residual.data), axis=1) for o in outs])
+        pred = np.concatenate([o.predicted.data for o in outs])[ok]
+        res = np.concatenate([o.residual.data for o in outs])[ok]
+        meas = np.concatenate([o.measured.data for o in outs])[ok]
+        clean = np.concatenate([ref[(GROUP_TOPICS[o.group], o.measured.stamp_ns)].data for o in outs])[ok]
+        cols = [outs[0].measured.channels.index(c) for c in outs[0].predicted.channels]
+        e_ref = nrmse(pred - clean[:, cols], clean[:, cols])
+        e_res = nrmse(res, meas[:, cols])
+        assert np.all(e_ref < 0.2), (group, e_ref)
+        assert np.all(e_res < 0.2), (group, e_res)
+    # the guideway channels do not wait for the irregularity: a prediction for every block
+    n_g = sum(1 for tp, _ in items if tp.startswith("/testline/guideway/"))
+    assert sum(1 for o, *_ in got if o.group.startswith("guideway") and o.valid) == n_g
+
+
+KP_NOM, KV_NOM = 6500.0, 35.0
+KP_TRUE, KV_TRUE = 1.2 * KP_NOM, 0.85 * KV_NOM
+
+
+@pytest.fixture(scope="module")
+def gains_pass(tmp_path_factory):
+    """A pass whose true levitation gains differ from the nominal design (kp +20 %, kv -15 %);
+    guideway truth = design, so only the magnet layer has something to find."""
+    sets = CHEAP + ["lead_in_s=4.0", "truth.guideway.youngs_modulus_pa=3.9e10",
+                    "truth.guideway.density_kg_m3=2500.0", "truth.guideway.bearing_stiffness_n_per_m=3.0e10",
+                    f"truth.levitation.kp_a_per_m={KP_TRUE}", f"truth.levitation.kv_a_s_per_m={KV_TRUE}",
+                    "truth.levitation.ka_a_s2_per_m=0.25"]
+    bag = simulate("paper", tmp_path_factory.mktemp("gains") / "pass", sets=sets, seed=5).bag
+    return _read(bag)
+
+
+def test_updater_runs_the_magnet_layer_once_on_valid_residuals_and_moves_gains_to_truth(gains_pass, tmp_path):
+    from maglev_ros.updating.magnet_layer import MagnetLayer
+    from maglev_ros.updating.online import OnlineUpdater
+    md, items = gains_pass
+    design = md.raw["design"]["levitation"]
+    assert design["kp_a_per_m"] == KP_NOM and design["kv_a_s_per_m"] == KV_NOM
+    hist = tmp_path / "hist.jsonl"
+    # the cheapest magnet-layer configuration that still resolves the gains (12 LHS samples,
+    # 6 LM evaluations, 250 Hz model, 6 s window): the default (30 / 15 / 500 Hz / 8 s) takes minutes here
+    up = OnlineUpdater(hist, magnet_layer=MagnetLayer(n_samples=12, polish_max_nfev=6), magnet_fs_hz=250.0,
+                       max_window_s=6.0)
+    up.set_metadata(md.raw)
+    tw = OnlineTwin(md, dt_max_s=5e-4)        # nominal gains: the twin the updater corrects
+    pubs, n_invalid, n_valid = [], 0, 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)      # no "Mean of empty slice" & co.
+        for tp, b in items:
+            up.on_vehicle_block(tp, b)
+            for o in tw.on_block(tp, b):
+                if o.group != "vehicle_accel":
+                    continue
+                n_valid += o.valid
+                n_invalid += not o.valid
+                pub = up.on_residual(o.residual)       # invalid (NaN) blocks included: must be skipped
+                if pub is not None:
+                    pubs.append(pub)
+    assert n_invalid > 0 and n_valid > 0
+    assert any("not valid yet" in line for line in up.log)
+    assert sum("not valid yet" in line for line in up.log) == 1          # said once
+    assert len(pubs) == 1, up.log
+    vals = dict(zip(pubs[0].names, pubs[0].values))
+    ident = dict(zip(pubs[0].names, pubs[0].identifiable))
+    assert ident["levitation.kp_a_per_m"]
+    for name, nom, true in (("levitation.kp_a_per_m", KP_NOM, KP_TRUE), ("levitation.kv_a_s_per_m", KV_NOM, KV_TRUE)):
+        if ident[name]:
+            assert abs(vals[name] - true) <= 0.5 * abs(nom - true), (name, vals[name], true)
+    rec = [json.loads(line) for line in hist.read_text().splitlines()]
+    assert len(rec) == 1 and rec[0]["data_used"]["kind"] == "vehicle window"
+    assert rec[0]["data_used"]["residual_nrmse"] > up.nrmse_trigger
+    assert rec[0]["fit"]["nrmse_after"] < rec[0]["fit"]["nrmse_before"]
+
+
+def test_updater_waits_with_one_reason_for_windows_that_lack_what_the_layer_needs(gains_pass, tmp_path):
+    from maglev_ros.sensor_block import Block
+    from maglev_ros.updating.online import OnlineUpdater
+    md, items = gains_pass
+    up = OnlineUpdater(tmp_path / "h.jsonl", magnet_min_s=1.0, nrmse_trigger=0.0)
+    up.set_metadata(md.raw)
+    acc = [b for tp, b in items if tp == "/testline/vehicle/accel"][:20]
+    # residual blocks but no gap stream buffered: the layer must not run, and says why once
+    for b in acc:
+        up.on_vehicle_block("/testline/vehicle/accel", b)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for b in acc:
+            res = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, 0.5 * b.data, "twin")
+            assert up.on_residual(res) is None
+    assert sum("/testline/vehicle/gap not buffered" in line for line in up.log) == 1, up.log
+    # a stationary vehicle: no moving window
+    up2 = OnlineUpdater(tmp_path / "h2.jsonl", magnet_min_s=1.0, nrmse_trigger=0.0)
+    up2.set_metadata(md.raw)
+    for tp, b in items[:200]:
+        if tp == TOPIC_VEHICLE_POSITION:
+            d = np.array(b.data, float)
+            d[:, list(b.channels).index("speed_mps")] = 0.0
+            d[:, list(b.channels).index("position_m")] = 10.0
+            b = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, d, b.frame_id)
+        up2.on_vehicle_block(tp, b)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for b in acc:
+            res = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, 0.5 * b.data, "twin")
+            assert up2.on_residual(res) is None
+    assert sum("slower than" in line for line in up2.log) == 1, up2.log
+    assert not (tmp_path / "h2.jsonl").exists() or not (tmp_path / "h2.jsonl").read_text().strip()

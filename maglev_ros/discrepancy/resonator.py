@@ -1,0 +1,393 @@
+"""Open-ended discovery, modelled: an added resonator on a girder, fitted to the residual.
+
+When the residual shows vibration in a band and on a span that no catalogue effect explains
+(:mod:`.discovery`), the simplest structural explanation a rail engineer recognises is something
+attached to the girder that resonates: a cable tray, a cover plate, a noise barrier panel, a
+sensor bracket, a loose rail fixing. It is modelled as a spring-mass (mass ``mu`` x girder mass,
+natural frequency ``f_a``, damping ratio ``zeta_a``) attached at ``x`` on one span.
+
+Model (choices the papers leave open, made here):
+- the attachment couples to the span's FE model (the diagnosing twin's guideway, per-end
+  bearings included, from :func:`.model.guideway_modal`) through one extra DOF: the augmented
+  eigenproblem [[K + k t t^T]] / [[M, 0], [0, m_a]] with t = (shape row at x, -1); the twin keeps
+  the beam part of each augmented mode (mass-normalised over beam + attachment), so the moving
+  magnet forces and the sensors see the girder only, and the attachment's inertia acts through
+  the modes;
+- damping of an augmented mode = the span's Rayleigh damping weighted by the beam's share of the
+  modal kinetic energy plus ``zeta_a`` weighted by the attachment's share (modal damping; the
+  non-proportional part is neglected: a few % error in the damping of the two coupled modes);
+- modes up to the twin's cutoff are kept (at least one more than the span had).
+The twin is otherwise unchanged (:func:`.model.build_stepper`, then its modal basis is swapped the
+same way the model's own per-end-bearing extension does).
+
+Fit: coarse grid over frequency (inside the discovered band) and position along the span (the
+mode shapes at the attachment and at the sensors decide how the modes split), then Nelder-Mead
+(scipy.optimize.minimize) over (ln f_a, x / L, ln mu, ln zeta_a) with the calibrated parameters
+re-fitted linearly at every step (variable projection on the calibration Jacobian, as the
+catalogue entries do, so a mere re-calibration gains nothing). Acceptance uses the catalogue's
+gates (:func:`.acceptance.judge`): held-out gain, delta BIC, plausible parameters, collinearity;
+plus one gate of its own, since a 4-parameter resonator can absorb small twin errors anywhere:
+it must explain the located finding, i.e. the held-out guideway misfit inside the discovered band
+drops by at least ``min_band_gain`` (25 %).
+Hand-written: the augmented eigenproblem is ten lines of scipy.linalg.eigh; no library attaches a
+resonator to our FE/modal twin.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.linalg import eigh
+from scipy.optimize import minimize
+
+from maglev_ros.twin.coupling import PassResult
+from maglev_ros.twin.guideway import ModalBasis
+
+from .acceptance import AcceptanceConfig, Verdict, collinearity, judge
+from .evaluate import RecData, ambient_powers, fit_report, model_powers, residual_vector
+from .features import band_powers, nrmse_amplitude
+from .model import ModelSpec, build_stepper, guideway_modal, reference_value
+
+MU_BOUNDS = (1e-3, 0.2)          # attachment mass / span mass
+ZETA_BOUNDS = (2e-3, 0.3)
+
+
+@dataclass(frozen=True)
+class Resonator:
+    """A spring-mass attached to span ``span_index`` at ``x_rel_m`` from the span start."""
+    span_index: int
+    x_rel_m: float
+    freq_hz: float
+    mass_ratio: float
+    damping_ratio: float = 0.03
+
+    def to_dict(self) -> dict:
+        return {"span_index": int(self.span_index), "x_rel_m": float(self.x_rel_m), "freq_hz": float(self.freq_hz),
+                "mass_ratio": float(self.mass_ratio), "damping_ratio": float(self.damping_ratio)}
+
+
+def resonator_modal(spec: ModelSpec, res: Resonator) -> ModalBasis:
+    """Modal basis of the spec's guideway with ``res`` attached (beam part of the augmented modes)."""
+    base = guideway_modal(spec)
+    num = spec.effective_config().numerics
+    freqs, zetas, owner, vecs = [], [], [], []
+    for i, fe in enumerate(base.spans_fe):
+        sel = base.span_index == i
+        if i != res.span_index:
+            freqs.append(base.freq_hz[sel]); zetas.append(base.damping_ratio[sel])
+            owner.append(np.full(int(sel.sum()), i)); vecs.append(base.vectors[i])
+            continue
+        n = fe.mass.shape[0]
+        ma = res.mass_ratio * fe.span.props.mass_per_length_kg_m * fe.span.length_m
+        ka = ma * (2 * math.pi * res.freq_hz) ** 2
+        t = np.append(fe.shape_matrix([fe.span.start_m + res.x_rel_m])[0], -1.0)
+        K = np.zeros((n + 1, n + 1)); M = np.zeros((n + 1, n + 1))
+        K[:n, :n] = fe.stiffness; M[:n, :n] = fe.mass; M[n, n] = ma
+        K += ka * np.outer(t, t)
+        w2, phi = eigh(K, M)
+        w = np.sqrt(np.clip(w2, 0.0, None))
+        f = w / (2 * math.pi)
+        k = min(w.size, max(int(np.sum(f <= num.mode_cutoff_hz)), int(sel.sum()) + 1, num.min_modes_per_span))
+        wk = np.maximum(w[:k], 1e-9)
+        z_beam = fe.rayleigh_a / (2 * wk) + fe.rayleigh_b * wk / 2
+        share = np.clip(phi[n, :k] ** 2 * ma, 0.0, 1.0)      # attachment's share of modal kinetic energy
+        freqs.append(f[:k]); zetas.append((1 - share) * z_beam + share * res.damping_ratio)
+        owner.append(np.full(k, i)); vecs.append(phi[:n, :k])
+    return ModalBasis(np.concatenate(freqs), np.concatenate(zetas), np.concatenate(owner), base.spans_fe,
+                      tuple(vecs))
+
+
+_SIM_CACHE: dict = {}
+
+
+def simulate_with(spec: ModelSpec, res: Resonator, rec) -> PassResult | None:
+    """Twin pass along ``rec`` (as :func:`.model.simulate`) with the resonator attached."""
+    if rec.kind != "pass" or rec.position_time_s is None:
+        return None
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
+    key = (phys, res, id(rec))
+    hit = _SIM_CACHE.get(key)
+    if hit is not None and hit[0] is rec:
+        return hit[1]
+    fs = max(c.sample_rate_hz for c in rec.channels.values())
+    sensors = {n: c.position_m for n, c in rec.channels.items()
+               if c.group in ("guideway_accel", "guideway_disp") and c.position_m is not None}
+    tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
+    tau = float(rec.sensor_delay_s)
+    t0 = max(rec.t0_s - tau, float(tp[0])) - 1.0 / fs
+    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
+                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0, irregularity=rec.irregularity)
+    st.modal = resonator_modal(phys, res)
+    st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+    st._setup_matrices()
+    st._x = np.zeros(st._nx)
+    st._u = np.zeros(3 * st._m)
+    nq = st.modal.n_modes
+    st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
+    st._F = st.vehicle.levitation.static_force_n.copy()
+    st._init_static()
+    parts = []
+    t = t0
+    t_end = rec.t1_s - tau + 1.0 / fs
+    while t < t_end - 1e-12:
+        tn = min(t_end, t + 0.25)
+        parts.append(st.advance(tn, float(np.interp(tn, tp, vp))))
+        t = tn
+    out = PassResult.concat(parts)
+    if tau:
+        out = replace(out, time_s=out.time_s + tau)
+    if len(_SIM_CACHE) > 128:
+        _SIM_CACHE.clear()
+    _SIM_CACHE[key] = (rec, out)
+    return out
+
+
+def model_powers_with(spec: ModelSpec, res: Resonator | None, rd: RecData) -> dict:
+    """Model band powers (twin with resonator + noise floor + stochastic extensions) per channel."""
+    if res is None:
+        return model_powers(spec, rd)
+    sim = simulate_with(spec, res, rd.rec)
+    if sim is None:
+        return model_powers(spec, rd)
+    amb = ambient_powers(spec, rd)
+    out = {}
+    for name, ch in rd.rec.channels.items():
+        if ch.group == "guideway_accel":
+            src = sim.guideway_accel_mps2[:, sim.sensor(name)]
+        elif ch.group == "guideway_disp":
+            src = sim.guideway_disp_m[:, sim.sensor(name)] + 0.0
+        elif ch.group == "vehicle_accel":
+            src = sim.magnet_accel_mps2[:, ch.magnet - 1]
+        else:
+            src = sim.magnet_gap_m[:, ch.magnet - 1]
+        y = np.interp(ch.time_s, sim.time_s, src) - reference_value(rd.rec, name)
+        p = band_powers(ch.time_s, y, ch.sample_rate_hz, rd.grid) + rd.noise[name][None, :]
+        if name in amb:
+            p = p + amb[name][None, :]
+        out[name] = p
+    return out
+
+
+def residual_with(spec: ModelSpec, res: Resonator | None, rds: list[RecData]) -> np.ndarray:
+    """Same residual vector as :func:`.evaluate.residual_vector`, with the resonator."""
+    if res is None:
+        return residual_vector(spec, rds)
+    parts = []
+    nrec = len(rds)
+    for rd in rds:
+        mp = model_powers_with(spec, res, rd)
+        nch = len(rd.rec.channels)
+        for n in rd.rec.channels:
+            am = np.sqrt(np.clip(rd.pm[n][:, rd.masks[n]], 0, None))
+            at = np.sqrt(np.clip(mp[n][:, rd.masks[n]], 0, None))
+            ok = np.isfinite(am) & np.isfinite(at)
+            den = np.sqrt(np.sum(am[ok] ** 2)) or 1.0
+            parts.append(((am - at)[ok] / den / math.sqrt(nch * nrec)).ravel())
+    return np.concatenate(parts)
+
+
+def fit_report_with(spec: ModelSpec, res: Resonator | None, rds: list[RecData]) -> tuple[float, dict]:
+    """Same measure as :func:`.evaluate.fit_report`, with the resonator."""
+    if res is None:
+        return fit_report(spec, rds)
+    per: dict[str, list] = {}
+    for rd in rds:
+        mp = model_powers_with(spec, res, rd)
+        for n in rd.rec.channels:
+            per.setdefault(n, []).append(nrmse_amplitude(rd.pm[n], mp[n], rd.masks[n][None, :]))
+    pc = {n: float(np.mean(v)) for n, v in per.items()}
+    allv = [x for v in per.values() for x in v]
+    return float(np.sqrt(np.mean(np.square(allv)))) if allv else 0.0, pc
+
+
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ResonatorFit:
+    resonator: Resonator
+    span_id: str
+    position_m: float
+    mass_kg: float
+    cal_delta: tuple[float, ...]
+    verdict: Verdict
+    n_sims: int
+    spec: ModelSpec = None          # calibrated spec the resonator was fitted with (not JSON)
+    band_nrmse: tuple[float, float] = (0.0, 0.0)    # held-out guideway NRMSE in the band, before/after
+
+    @property
+    def accepted(self) -> bool:
+        return self.verdict.accepted
+
+    def to_dict(self) -> dict:
+        r = self.resonator
+        return {"kind": "added_resonator", "span": self.span_id, "position_m": float(self.position_m),
+                "freq_hz": float(r.freq_hz), "damping_ratio": float(r.damping_ratio),
+                "mass_ratio": float(r.mass_ratio), "mass_kg": float(self.mass_kg),
+                "accepted": bool(self.verdict.accepted), "reasons": list(self.verdict.reasons),
+                "evidence": {"heldout_nrmse_before": self.verdict.heldout_before,
+                             "heldout_nrmse_after": self.verdict.heldout_after,
+                             "delta_bic": self.verdict.delta_bic,
+                             "heldout_band_nrmse_before": float(self.band_nrmse[0]),
+                             "heldout_band_nrmse_after": float(self.band_nrmse[1])},
+                "simulations": int(self.n_sims)}
+
+    def explanation(self, band_hz) -> str:
+        r = self.resonator
+        f0, f1 = band_hz
+        ev = self.verdict
+        t = self.mass_kg
+        mass = f"{t / 1000:.1f} t" if t >= 1000 else f"{t:.0f} kg"
+        core = (f"A component of about {mass} ({100 * r.mass_ratio:.1f} % of the girder's mass) resonating at "
+                f"{r.freq_hz:.1f} Hz (damping {100 * r.damping_ratio:.1f} %), attached about {r.x_rel_m:.1f} m into "
+                f"span {self.span_id} (x = {self.position_m:.1f} m), ")
+        if ev.accepted:
+            return (core + f"explains the unexplained {f0:.0f}-{f1:.0f} Hz vibration: held-out NRMSE "
+                    f"{ev.heldout_before:.3f} -> {ev.heldout_after:.3f}, delta BIC {ev.delta_bic:+.0f}. Inspect span "
+                    f"{self.span_id} near x = {self.position_m:.0f} m for a loose or resonant attachment (cable tray, "
+                    f"cover plate, noise-barrier panel, bracket, loose fixing). This is not a catalogue effect.")
+        return (core + f"was the best added resonator for the {f0:.0f}-{f1:.0f} Hz residual but is NOT supported: "
+                + "; ".join(ev.reasons) + ".")
+
+
+class ResonatorFinder:
+    """Fit an added girder resonator to the residual of a calibrated twin and judge it.
+
+    ``fit(base, rd_train, rd_test, band_hz, span_index)``: ``base`` is the calibrated
+    :class:`.fitting.BaseFit` (spec, theta, jac, r0), the resonator is searched inside ``band_hz``
+    (widened by ``band_margin``) on span ``span_index``.
+    """
+
+    def __init__(self, acceptance: AcceptanceConfig = AcceptanceConfig(), n_freq: int = 5,
+                 x_fracs=(0.2, 0.4, 0.6, 0.8), mass_ratio0: float = 0.02, zeta0: float = 0.03,
+                 max_refine: int = 30, band_margin: float = 0.12, min_band_gain: float = 0.25):
+        self.acceptance = acceptance
+        self.n_freq = int(n_freq)
+        self.x_fracs = tuple(float(x) for x in x_fracs)
+        self.mass_ratio0 = float(mass_ratio0)
+        self.zeta0 = float(zeta0)
+        self.max_refine = int(max_refine)
+        self.band_margin = float(band_margin)
+        self.min_band_gain = float(min_band_gain)
+
+    def fit(self, base, rd_train: list[RecData], rd_test: list[RecData], band_hz, span_index: int,
+            search_hz=None) -> ResonatorFit:
+        """``band_hz``: the located band (the fit must explain the misfit there); ``search_hz``: the
+        range of resonator frequencies searched (default: the band widened by ``band_margin``)."""
+        from .fitting import CAL_HI, CAL_LO, PRIOR_SIGMA, bic
+        spec = base.spec
+        span = spec.spans[span_index]
+        L = span.length_m
+        if search_hz is None:
+            search_hz = (band_hz[0] * (1 - self.band_margin), band_hz[1] * (1 + self.band_margin))
+        f_lo = max(1.0, float(search_hz[0]))
+        f_hi = float(search_hz[1])
+        J = np.asarray(base.jac)
+        lam = (0.02 / PRIOR_SIGMA) ** 2
+        A = J.T @ J + lam * np.eye(J.shape[1])
+        th0 = np.asarray(base.theta, float)
+        n_sims = [0]
+
+        def project(r):
+            d = -np.linalg.solve(A, J.T @ r + lam * th0)
+            d = np.clip(th0 + d, CAL_LO, CAL_HI) - th0
+            return r + J @ d, d
+
+        def make(p):
+            lf, xf, lmu, lz = p
+            return Resonator(span_index, float(np.clip(xf, 0.02, 0.98)) * L, float(math.exp(lf)),
+                             float(math.exp(lmu)), float(math.exp(lz)))
+
+        def cost(p):
+            lf, xf, lmu, lz = p
+            pen = 0.0
+            # soft box: outside it the cost rises steeply (Nelder-Mead has no bounds)
+            for v, lo, hi in ((lf, math.log(f_lo), math.log(f_hi)), (xf, 0.02, 0.98),
+                              (lmu, math.log(MU_BOUNDS[0]), math.log(MU_BOUNDS[1])),
+                              (lz, math.log(ZETA_BOUNDS[0]), math.log(ZETA_BOUNDS[1]))):
+                pen += 1e3 * (max(0.0, lo - v) + max(0.0, v - hi)) ** 2
+            p = (min(max(lf, math.log(f_lo)), math.log(f_hi)), min(max(xf, 0.02), 0.98),
+                 min(max(lmu, math.log(MU_BOUNDS[0])), math.log(MU_BOUNDS[1])),
+                 min(max(lz, math.log(ZETA_BOUNDS[0])), math.log(ZETA_BOUNDS[1])))
+            n_sims[0] += 1
+            try:
+                r = residual_with(spec, make(p), rd_train)
+            except Exception:           # unstable twin at this trial: worst cost
+                return float(base.r0 @ base.r0) * 10 + pen
+            rp, _ = project(r)
+            return float(rp @ rp) + pen
+
+        # coarse grid: frequency x position
+        best = None
+        for f in np.geomspace(f_lo, f_hi, self.n_freq):
+            for xf in self.x_fracs:
+                p = np.array([math.log(f), xf, math.log(self.mass_ratio0), math.log(self.zeta0)])
+                c = cost(p)
+                if best is None or c < best[0]:
+                    best = (c, p)
+        simplex = np.vstack([best[1], best[1] + np.diag([0.04, 0.08, 0.7, 0.7])])
+        res_opt = minimize(cost, best[1], method="Nelder-Mead",
+                           options={"maxfev": self.max_refine, "xatol": 1e-3, "fatol": 1e-9,
+                                    "initial_simplex": simplex})
+        p = res_opt.x if res_opt.fun <= best[0] else best[1]
+        p = np.array([min(max(p[0], math.log(f_lo)), math.log(f_hi)), min(max(p[1], 0.02), 0.98),
+                      min(max(p[2], math.log(MU_BOUNDS[0])), math.log(MU_BOUNDS[1])),
+                      min(max(p[3], math.log(ZETA_BOUNDS[0])), math.log(ZETA_BOUNDS[1]))])
+        res = make(p)
+        r = residual_with(spec, res, rd_train)
+        rp, d = project(r)
+        rss = float(rp @ rp)
+        n_eff = max(10, base.r0.size // 2)
+        k = 5                                           # f, x, mass ratio, damping + the span chosen
+        dbic = bic(rss, n_eff, k) - bic(float(base.r0 @ base.r0), n_eff, 0)
+        fitted = spec.with_(cal=tuple(float(x) for x in th0 + d))
+        held_before, _ = fit_report(spec, rd_test)
+        held_after, _ = fit_report_with(fitted, res, rd_test)
+        r_te0 = residual_vector(spec, rd_test)
+        r_te1 = residual_with(fitted, res, rd_test)
+        n_test = max(10, r_te0.size // 2)
+        llr = 0.5 * n_test * math.log(float(r_te0 @ r_te0) / max(float(r_te1 @ r_te1), 1e-300))
+        col = collinearity(r - base.r0, J)
+        plaus = self._plausible(res, f_lo, f_hi)
+        # it must explain the located finding itself: the held-out guideway misfit in the band
+        band_before, band_after = self._band_misfit(spec, None, fitted, res, rd_test, band_hz[0], band_hz[1])
+        if not band_after <= (1 - self.min_band_gain) * band_before:
+            why = (f"it does not explain the located {band_hz[0]:.0f}-{band_hz[1]:.0f} Hz misfit (held-out band NRMSE "
+                   f"{band_before:.3f} -> {band_after:.3f}, needs a {100 * self.min_band_gain:.0f} % drop): its gain "
+                   f"is elsewhere, i.e. it only absorbs small model errors")
+            plaus = (False, "; ".join(x for x in (plaus[1], why) if x))
+        v = judge(held_before, held_after, dbic, plaus, col, self.acceptance, llr)
+        m_span = span.props.mass_per_length_kg_m * L
+        return ResonatorFit(res, span.span_id, span.start_m + res.x_rel_m, res.mass_ratio * m_span,
+                            tuple(float(x) for x in d), v, n_sims[0] + 1, fitted, (band_before, band_after))
+
+    @staticmethod
+    def _band_misfit(spec0, res0, spec1, res1, rds, f_lo, f_hi) -> tuple[float, float]:
+        """Held-out NRMSE of band amplitudes over the guideway channels and the bands that overlap
+        [f_lo, f_hi], without and with the resonator."""
+        acc = [[0.0, 0.0], [0.0, 0.0]]
+        for rd in rds:
+            e = rd.grid.edges_hz
+            sel = (e[1:] > f_lo) & (e[:-1] < f_hi)
+            for k, (sp, rs) in enumerate(((spec0, res0), (spec1, res1))):
+                mp = model_powers_with(sp, rs, rd)
+                for n, ch in rd.rec.channels.items():
+                    if not ch.group.startswith("guideway"):
+                        continue
+                    m = sel & rd.masks[n]
+                    am = np.sqrt(np.clip(rd.pm[n][:, m], 0, None))
+                    at = np.sqrt(np.clip(mp[n][:, m], 0, None))
+                    ok = np.isfinite(am) & np.isfinite(at)
+                    acc[k][0] += float(np.sum((am[ok] - at[ok]) ** 2))
+                    acc[k][1] += float(np.sum(am[ok] ** 2))
+        return tuple(math.sqrt(a / b) if b > 0 else 0.0 for a, b in acc)
+
+    @staticmethod
+    def _plausible(res: Resonator, f_lo: float, f_hi: float) -> tuple[bool, str]:
+        why = []
+        if not (MU_BOUNDS[0] * 1.01 <= res.mass_ratio <= MU_BOUNDS[1] * 0.99):
+            why.append(f"attachment mass ratio {res.mass_ratio:.3f} at its bound {MU_BOUNDS}")
+        if not (ZETA_BOUNDS[0] * 1.01 <= res.damping_ratio <= ZETA_BOUNDS[1] * 0.99):
+            why.append(f"attachment damping ratio {res.damping_ratio:.3f} at its bound {ZETA_BOUNDS}")
+        if not (f_lo * 1.001 <= res.freq_hz <= f_hi * 0.999):
+            why.append(f"resonator frequency {res.freq_hz:.1f} Hz at the edge of the searched band")
+        return (not why, "; ".join(why))

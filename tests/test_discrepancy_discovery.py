@@ -1,0 +1,195 @@
+"""Discovery that models what it found: added girder resonator and sparse suspension terms.
+
+References: a 2-DOF reduction of the augmented eigenproblem (analytic), recordings from a truth
+twin whose attachment is built by the generator's own augmented FE eigenproblem on a finer mesh
+(tests/discrepancy_cases._attachment_modes; the diagnosing twin uses its coarser design mesh),
+and synthetic residuals with a known cubic term (Monte Carlo over seeds).
+"""
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from maglev_ros.discrepancy.discovery import TERM_NAMES, sparse_regression_report, stlsq, term_library
+from maglev_ros.discrepancy.evaluate import prepare, residual_vector
+from maglev_ros.discrepancy.fitting import BaseFit
+from maglev_ros.discrepancy.model import base_spec, guideway_modal
+from maglev_ros.discrepancy.recording import recording_from_arrays
+from maglev_ros.discrepancy.resonator import Resonator, ResonatorFinder, resonator_modal
+
+
+# ---- augmented eigenproblem vs a 2-DOF analytic reduction -------------------------------------
+def _md(n_spans=2):
+    from discrepancy_cases import metadata
+    return metadata({}, "pass", 25.0, n_spans)
+
+
+@pytest.mark.parametrize("mu,detune", [(0.005, 1.0), (0.01, 1.1), (0.02, 0.9)])
+def test_attached_resonator_splits_the_mode_like_a_two_dof_system(mu, detune):
+    spec = base_spec(_md())
+    modal = guideway_modal(spec)
+    i, span = 1, spec.spans[1]
+    j = int(np.flatnonzero(modal.span_index == i)[0])        # first mode of span 2 (mass-normalised)
+    w1 = modal.omega_rad_s[j]
+    x = span.start_m + 0.4 * span.length_m
+    phi = float(modal.shapes_at([x])[0, j])
+    m_span = span.props.mass_per_length_kg_m * span.length_m
+    ma = mu * m_span
+    wa = detune * w1
+    ka = ma * wa ** 2
+    # 2-DOF: modal coordinate (unit modal mass) + attachment mass
+    K = np.array([[w1 ** 2 + ka * phi ** 2, -ka * phi], [-ka * phi, ka]])
+    M = np.diag([1.0, ma])
+    w2 = np.sort(np.linalg.eigvals(np.linalg.solve(M, K)).real)
+    f_ref = np.sqrt(w2) / (2 * math.pi)
+    aug = resonator_modal(spec, Resonator(i, 0.4 * span.length_m, wa / (2 * math.pi), mu, 0.03))
+    f_aug = np.sort(aug.freq_hz[aug.span_index == i])[:2]
+    # other modes (40x higher) couple only weakly: within 1 %
+    assert np.allclose(f_aug, f_ref, rtol=0.01), (f_aug, f_ref)
+    # other spans unchanged
+    assert np.allclose(aug.freq_hz[aug.span_index == 0], modal.freq_hz[modal.span_index == 0])
+
+
+# ---- resonator found from recordings -----------------------------------------------------------
+def _truth_pass(speed, attach, seed, n_el=24):
+    """A pass over 2 spans from a truth twin (finer mesh, smaller step) with the generator's
+    attachment (or none), 1 kHz decimated to 500 Hz, white sensor noise."""
+    from discrepancy_cases import NOISE_STD, _attachment_modes
+    from maglev_ros.twin.coupling import TwinStepper
+    from maglev_ros.twin.design import line_spans, twin_config
+    rng = np.random.default_rng(seed)
+    md = _md(2)
+    md["run"]["nominal_speed_mps"] = speed
+    cfg = twin_config()
+    cfg = replace(cfg, numerics=replace(cfg.numerics, n_elements_per_span=n_el))
+    spans = line_spans(md["line"], cfg)
+    gs = {k: s["position_m"] for k, s in md["sensors"].items() if "position_m" in s}
+    offs = np.array(cfg.vehicle.magnet_offsets_m)
+    x0 = -offs.max() - 1.0 * speed
+    dur = (2 * spans[0].length_m - offs.min() + 1.0 * speed - x0) / speed
+    st = TwinStepper(cfg, spans, sensors=gs, fs_out_hz=1000.0, start_position_m=x0, start_speed_mps=speed,
+                     init="rest", dt_max_s=5e-4)
+    if attach is not None:
+        st.modal = _attachment_modes(st.guideway, attach["span_index"], attach["x_rel_m"], attach["freq_hz"],
+                                     attach["mass_ratio"], 0.03, cfg.numerics.mode_cutoff_hz)
+        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m)
+        st._setup_matrices()
+        nq = st.modal.n_modes
+        st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
+    st._init_static()
+    res = st.advance(dur, speed)
+    t = res.time_s[1::2]
+    sig = {}
+    for k, s in md["sensors"].items():
+        if s["topic"].endswith("guideway/accel"):
+            y, grp = res.guideway_accel_mps2[:, res.sensor(k)], "guideway_accel"
+        elif s["topic"].endswith("displacement"):
+            y, grp = res.guideway_disp_m[:, res.sensor(k)], "guideway_disp"
+        elif s["topic"].endswith("vehicle/accel"):
+            y, grp = res.magnet_accel_mps2[:, s["magnet"] - 1], "vehicle_accel"
+        else:
+            y, grp = res.magnet_gap_m[:, s["magnet"] - 1], "gap"
+        y = y[1::2]
+        sig[k] = (t, y + NOISE_STD[grp] * rng.standard_normal(y.size))
+    pt = t[::5]
+    pos = (pt, np.interp(pt, res.time_s, res.position_m), np.interp(pt, res.time_s, res.speed_mps))
+    return recording_from_arrays(md, sig, pos, source=f"truth_{speed:g}")
+
+
+def _base_fit(spec, rds):
+    r0 = residual_vector(spec, rds)
+    cols = []
+    for j in range(4):
+        c = list(spec.cal)
+        c[j] += 0.03
+        cols.append((residual_vector(spec.with_(cal=tuple(c)), rds) - r0) / 0.03)
+    return BaseFit(spec, np.array(spec.cal, float), np.array(cols).T, r0, 5)
+
+
+FAST_FINDER = dict(n_freq=3, x_fracs=(0.3, 0.6), max_refine=14)
+
+
+@pytest.fixture(scope="module")
+def attachment_case():
+    L = 12.384
+    truth = {"span_index": 1, "x_rel_m": 0.4 * L, "freq_hz": 38.0, "mass_ratio": 0.03}
+    recs = [_truth_pass(v, truth, seed) for v, seed in ((24.0, 1), (31.0, 2))]
+    spec = base_spec(recs[0].metadata)
+    rds = [prepare(r, spec) for r in recs]
+    return truth, spec, rds
+
+
+def test_added_resonator_is_fitted_located_and_accepted(attachment_case):
+    truth, spec, rds = attachment_case
+    base = _base_fit(spec, rds[:1])
+    fit = ResonatorFinder(**FAST_FINDER).fit(base, rds[:1], rds[1:], (31.0, 44.0), 1)
+    assert fit.accepted, fit.verdict.reasons
+    assert fit.span_id == "S2"
+    # the coupled system's dominant new mode: frequency within 15 %, place within 3 m of the truth
+    assert abs(fit.resonator.freq_hz - truth["freq_hz"]) <= 0.15 * truth["freq_hz"]
+    assert abs(fit.position_m - (12.384 + truth["x_rel_m"])) <= 3.0
+    assert fit.verdict.heldout_after < 0.95 * fit.verdict.heldout_before
+    assert 0.001 < fit.resonator.mass_ratio < 0.2
+    d = fit.to_dict()
+    assert d["kind"] == "added_resonator" and d["span"] == "S2"
+    assert "span S2" in fit.explanation((31.0, 44.0))
+
+
+def test_no_resonator_is_accepted_without_one():
+    recs = [_truth_pass(v, None, seed) for v, seed in ((24.0, 3), (31.0, 4))]
+    spec = base_spec(recs[0].metadata)
+    rds = [prepare(r, spec) for r in recs]
+    base = _base_fit(spec, rds[:1])
+    fit = ResonatorFinder(**FAST_FINDER).fit(base, rds[:1], rds[1:], (31.0, 44.0), 1)
+    assert not fit.accepted
+    assert "NOT supported" in fit.explanation((31.0, 44.0))
+
+
+# ---- sparse regression of the vehicle residual -------------------------------------------------
+def _gap_series(rng, n, fs, rms):
+    from scipy import signal
+    sos = signal.butter(4, [0.5, 12.0], btype="band", fs=fs, output="sos")
+    g = signal.sosfilt(sos, rng.standard_normal(n + 2000))[2000:]
+    return rms * g / g.std()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sparse_regression_finds_the_cubic_term(seed):
+    rng = np.random.default_rng(seed)
+    fs = 500.0
+    k3 = -4.0e7            # m/s^2 per m^3: about 0.3 m/s^2 at a 2 mm gap change
+    parts = []
+    for _ in range(2):
+        g = _gap_series(rng, 4000, fs, 2e-3)
+        th = term_library(g, fs)
+        y = 30.0 * g + 0.8 * th[:, 1] + k3 * g ** 3 + 0.03 * rng.standard_normal(g.size)
+        parts.append((th, y))
+    (tr, ytr), (te, yte) = parts
+    rep = sparse_regression_report(tr, ytr, te, yte, 1000, 1000)
+    assert rep["accepted"], rep["reasons"]
+    assert set(rep["terms"]) == {"g^3"}
+    assert rep["terms"]["g^3"] == pytest.approx(k3, rel=0.1)
+    assert rep["linear_terms"]["g"] == pytest.approx(30.0, rel=0.05)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_sparse_regression_reports_nothing_for_a_linear_residual(seed):
+    rng = np.random.default_rng(seed)
+    fs = 500.0
+    parts = []
+    for _ in range(2):
+        g = _gap_series(rng, 4000, fs, 2e-3)
+        th = term_library(g, fs)
+        parts.append((th, 30.0 * g + 0.8 * th[:, 1] + 0.05 * rng.standard_normal(g.size)))
+    (tr, ytr), (te, yte) = parts
+    rep = sparse_regression_report(tr, ytr, te, yte, 1000, 1000)
+    assert not rep["accepted"]
+    assert rep["terms"] == {} or "not a clear improvement" in " ".join(rep["reasons"])
+
+
+def test_stlsq_recovers_a_sparse_law_exactly_without_noise():
+    rng = np.random.default_rng(9)
+    X = rng.standard_normal((500, len(TERM_NAMES)))
+    c = np.array([1.0, 0.0, 0.0, -2.0, 0.0, 0.0])
+    assert np.allclose(stlsq(X, X @ c, 0.05), c, atol=1e-10)

@@ -245,3 +245,65 @@ def simulate_drifting(model: ModalModel, fs_hz: float, duration_s: float, drift_
             q[s0:s1, r], zis[r] = lfilter(num, den, p[s0:s1, r], zi=zi)
     y = q @ model.shapes.T
     return add_sensor_noise(y, noise_frac, rng)
+
+
+def cramer_rao_std(model: ModalModel, fs_hz: float, duration_s: float, noise_frac: float = 0.05,
+                   grid_hz: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Cramer-Rao lower bound of the modal estimates for records of :func:`simulate_ambient`
+    (white excitation): (std of frequency / frequency, std of damping ratio) per mode.
+
+    Whittle (asymptotic) Fisher information of the 15-channel Gaussian process,
+    ``F_ij = sum over the N/2 Fourier frequencies of tr(S^-1 dS/d_i S^-1 dS/d_j)``, with S the
+    exact cross-spectral matrix of the simulated structure (ZOH modal filters, the modal force
+    covariance ``Phi^T Phi`` of the spatially white forces, white sensor noise of
+    ``noise_frac`` x channel std). Unknowns: every frequency and damping ratio, plus one force
+    scale per mode and the noise level (nuisance); the shapes are taken as known, which can only
+    lower the bound. The sum is evaluated on a ``grid_hz`` grid (the integrand is smooth on the
+    scale of the narrowest half-power bandwidth) and scaled to N/2 frequencies. For a single
+    lightly damped mode it reduces to ``var(f)/f^2 = var(zeta) = zeta / (2 pi f T)``.
+    """
+    n = duration_s * fs_hz
+    w = np.pi * np.arange(1, int(0.5 * fs_hz / grid_hz)) / (0.5 * fs_hz / grid_hz)
+    m = model.frequency_hz.size
+    l = model.shapes.shape[0]
+    sp = model.shapes.T @ model.shapes
+
+    def spectrum(freq, zeta, scale, noise_var):
+        mm = ModalModel(freq, zeta, model.shapes, model.channels, model.kinds, model.shape_perturbation)
+        h = np.array([_freqz(num, den, w) for num, den in _modal_filters(mm, fs_hz)]).T
+        g = model.shapes[None] * (h * np.sqrt(scale))[:, None, :]            # (F, l, m)
+        s = g @ sp @ g.conj().transpose(0, 2, 1)
+        return s + np.diag(noise_var)[None]
+
+    f0, z0, one = model.frequency_hz, model.damping_ratio, np.ones(m)
+    s_sig = spectrum(f0, z0, one, np.zeros(l))
+    noise_var = noise_frac ** 2 * np.real(np.einsum("fii->fi", s_sig)).mean(axis=0)
+    s0 = s_sig + np.diag(noise_var)[None]
+    derivs = []
+    for r in range(m):
+        for kind, eps in (("f", 1e-6), ("z", 1e-7), ("s", 1e-5)):
+            args_p, args_m = [f0.copy(), z0.copy(), one.copy()], [f0.copy(), z0.copy(), one.copy()]
+            k = "fzs".index(kind)
+            if kind == "f":
+                args_p[0][r] *= 1 + eps
+                args_m[0][r] *= 1 - eps
+            else:
+                args_p[k][r] += eps
+                args_m[k][r] -= eps
+            derivs.append((spectrum(*args_p, noise_var) - spectrum(*args_m, noise_var)) / (2 * eps))
+    derivs.append(np.broadcast_to(np.diag(noise_var)[None], s0.shape))    # d S / d log(noise)
+    s_inv = np.linalg.inv(s0)
+    a = np.array([s_inv @ d for d in derivs])                                  # (P, F, l, l)
+    p = a.shape[0]
+    flat = a.reshape(p, -1)
+    flat_t = a.transpose(0, 1, 3, 2).reshape(p, -1)
+    fim = np.real(flat @ flat_t.T) * (0.5 * n / w.size)
+    cov = np.linalg.inv(fim)
+    sf = np.sqrt(np.diag(cov)[0::3][:m])
+    sz = np.sqrt(np.diag(cov)[1::3][:m])
+    return sf, sz
+
+
+def _freqz(num, den, w):
+    z = np.exp(-1j * w)
+    return np.polyval(num[::-1], z) / np.polyval(den[::-1], z)

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -276,14 +276,18 @@ class SSICov:
     ``n_blocks``, ``spectrum`` (compute the singular-value spectrum for the diagram),
     ``blas_threads`` (BLAS threads during fit; None = leave the process setting alone),
     ``lag_shift`` (lag shift of the shift-invariance check of the selected modes;
-    None = :func:`anti_alias_memory_lags`, 0 = no check; see the module docstring).
+    None = :func:`anti_alias_memory_lags`, 0 = no check; see the module docstring),
+    ``polish`` ("whittle": maximum-likelihood refinement of each selected pole on the record's
+    periodogram in ``fit``, stationary records with ``uncertainty="blocks"`` only; None: plain
+    SSI-cov; see the module docstring).
     """
 
     def __init__(self, block_rows: int = 40, orders=range(2, 81, 2), decimate_to_hz: float | None = None,
                  freq_range_hz: tuple[float, float] | None = None, ref_channels=None,
                  criteria: StabilityCriteria | None = None, uncertainty: str = "blocks",
                  n_blocks: int = 10, spectrum: bool = True, nperseg: int = 1024,
-                 blas_threads: int | None = 1, lag_shift: int | None = None):
+                 blas_threads: int | None = 1, lag_shift: int | None = None,
+                 polish: str | None = "whittle"):
         if int(block_rows) < 2:
             raise UserError(f"block_rows: expected an integer >= 2, got {block_rows!r}")
         self.block_rows = int(block_rows)
@@ -306,6 +310,9 @@ class SSICov:
         if not (isinstance(lag_shift, (int, np.integer)) and lag_shift >= 0):
             raise UserError(f"lag_shift: expected an integer >= 0, got {lag_shift!r}")
         self.lag_shift = int(lag_shift)
+        if polish not in ("whittle", None):
+            raise UserError(f"polish: expected 'whittle' or None, got {polish!r}")
+        self.polish = polish
 
     @property
     def max_lag(self) -> int:
@@ -327,7 +334,27 @@ class SSICov:
         spec = sv_spectrum(y, fs, nperseg=min(self.nperseg, y.shape[0])) if self.spectrum else None
         res, _ = self.fit_covariances(cov, fs, channels, block_covs=covs if nb > 1 else None,
                                       spectrum=spec)
+        if self.polish == "whittle" and res.uncertainty == "blocks" and res.modes:
+            res = self._polish(y, fs, res)
         return res
+
+    def _polish(self, y, fs, res):
+        """Whittle maximum-likelihood refinement of frequency and damping (stationary records,
+        :mod:`maglev_ros.modal.polish`); std from its Fisher information. Shapes unchanged."""
+        from maglev_ros.modal.polish import WhittlePolish
+        pol = WhittlePolish().fit(y, fs, [m.frequency_hz for m in res.modes],
+                                  [m.damping_ratio for m in res.modes], np.array(res.complex_shapes),
+                                  [m.std_frequency_hz for m in res.modes])
+        modes = []
+        for m, p in zip(res.modes, pol):
+            if p.ok:
+                m = replace(m, frequency_hz=float(p.frequency_hz), damping_ratio=float(p.damping_ratio),
+                            std_frequency_hz=float(p.std_frequency_hz),
+                            std_damping_ratio=float(p.std_damping_ratio))
+            modes.append(m)
+        n_ok = sum(p.ok for p in pol)
+        return replace(res, modes=tuple(modes), method="ssi-cov+whittle" if n_ok else res.method,
+                       uncertainty="fisher" if n_ok == len(pol) else ("blocks+fisher" if n_ok else "blocks"))
 
     def fit_covariances(self, cov: np.ndarray, fs_hz: float, channels, block_covs=None,
                         spectrum: Spectrum | None = None, v0: np.ndarray | None = None,

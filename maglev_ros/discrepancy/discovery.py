@@ -155,7 +155,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
         if d["model"]["accepted"]:
             d["kind"] = "added_resonator"
             d["explanation"] = rf.explanation(d["frequency_hz"])
-            d["location"] = {"position_m": [float(rf.position_m), float(rf.position_m)], "span": rf.span_id}
+            d["location"] = {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id}
         else:
             d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"])
     if any(not d["location"].get("span") for d in disc):

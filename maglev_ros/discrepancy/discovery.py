@@ -125,7 +125,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
     spans = base.spec.spans
     idx = {s.span_id: i for i, s in enumerate(spans)}
     cands = [d for d in disc if d["location"].get("span") in idx]
-    cands.sort(key=lambda d: (d["kind"] != "resonance", -d["score"]))
+    cands.sort(key=lambda d: -d["score"])
     seen = set()
     fits = []
     for d in cands:
@@ -145,6 +145,8 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                 log(f"discovery: resonator fit failed on {key}: {exc}")
             continue
         fits.append((rf, d))
+        if rf.accepted:
+            break               # one modelled explanation per diagnosis (the strongest finding first)
     best = min((t for t in fits if t[0].accepted), key=lambda t: t[0].verdict.heldout_after, default=None)
     for rf, d in fits:
         d["model"] = rf.to_dict()

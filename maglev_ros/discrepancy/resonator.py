@@ -21,7 +21,9 @@ The twin is otherwise unchanged (:func:`.model.build_stepper`, then its modal ba
 same way the model's own per-end-bearing extension does).
 
 Fit: coarse grid over frequency (inside the discovered band) and position along the span (the
-mode shapes at the attachment and at the sensors decide how the modes split), then Nelder-Mead
+mode shapes at the attachment and at the sensors decide how the modes split; the grid covers
+the first half only, as a symmetric span gives nearly the same fit at x and L - x, and the
+report names both places), then Nelder-Mead
 (scipy.optimize.minimize) over (ln f_a, x / L, ln mu, ln zeta_a) with the calibrated parameters
 re-fitted linearly at every step (variable projection on the calibration Jacobian, as the
 catalogue entries do, so a mere re-calibration gains nothing). Acceptance uses the catalogue's
@@ -270,7 +272,7 @@ class ResonatorFinder:
     """
 
     def __init__(self, acceptance: AcceptanceConfig = AcceptanceConfig(), n_freq: int = 5,
-                 x_fracs=(0.2, 0.4, 0.6, 0.8), mass_ratio0: float = 0.02, zeta0: float = 0.03,
+                 x_fracs=(0.2, 0.4), mass_ratio0: float = 0.02, zeta0: float = 0.03,
                  max_refine: int = 30, band_margin: float = 0.12, min_band_gain: float = 0.15):
         self.acceptance = acceptance
         self.n_freq = int(n_freq)

@@ -1,9 +1,9 @@
 """Open-ended discovery: what the residual says when no catalogue entry explains it.
 
-Method (hand-written, ~40 lines of numpy): the residual band powers left after the best model are
-pooled over the flagged cells; the band with the largest excess is located in time (-> the
-vehicle's place on the line), by sensor (the guideway sensor with the largest excess gives the
-span) and in frequency (an excess inside a band that holds no twin mode is a resonance the twin
+Method (hand-written, ~60 lines of numpy): the flagged cells of the residual maps left after the
+best model (:mod:`.localize`) are pooled per place (the span of each guideway sensor, or the
+vehicle) and band; per place the strongest band (widened to strong neighbours) and then the next
+are findings, located in time, by place and in frequency (an excess inside a band that holds no twin mode is a resonance the twin
 does not have: an attachment, a cable trough, a noise barrier... ; an excess at a twin mode is
 more/less response of an existing mode). Reported in plain words with band and place; never
 mapped onto a catalogue name.

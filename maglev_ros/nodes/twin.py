@@ -187,7 +187,7 @@ class TwinNode(Node):
             self.pending_params = msg
             return
         try:
-            adopted = self.core.set_parameters(list(msg.names), list(msg.values))
+            adopted = self.core.set_parameters(list(msg.names), list(msg.values), source_revision=int(msg.revision))
             self.get_logger().info(f"adopted twin parameters rev {msg.revision}: {adopted}")
         except UserError as exc:
             self.get_logger().error(f"{TOPIC_PARAMETERS}: {exc}")

@@ -9,7 +9,11 @@ is republished, so a restarted node (and a late twin) get the current parameters
 
 Parameters: ``history_path`` (default ``maglev_twin_parameters.jsonl``), ``freq_rel_tol`` (2e-3),
 ``n_sigma`` (3.0), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15),
-``max_window_s`` (8.0), ``magnet_layer`` (true: run it when the residual warrants).
+``max_window_s`` (8.0), ``max_lag_s`` (10.0: extra seconds of vehicle streams kept, as the twin's
+residuals lag the stream), ``min_speed_mps`` (0.1), ``magnet_layer`` (true: run it when the
+residual warrants). Residual blocks with NaN (the twin had no measured irregularity under every
+magnet) or of a parameter revision older than the accepted one (frame_id "twin rev <n>") are
+never judged; why the magnet layer waits is logged once per reason.
 The magnet layer takes tens of seconds; it runs in a worker thread on copies of the buffered
 window and the current parameters, without holding the node's lock (the node keeps receiving
 and updating the guideway meanwhile); only accepting and storing the result takes the lock.
@@ -42,7 +46,9 @@ class UpdaterNode(Node):
             p("history_path", "maglev_twin_parameters.jsonl").value,
             freq_rel_tol=float(p("freq_rel_tol", 2e-3).value), n_sigma=float(p("n_sigma", 3.0).value),
             max_modes=int(p("max_modes", 4).value), magnet_min_s=float(p("magnet_min_s", 3.0).value),
-            nrmse_trigger=float(p("nrmse_trigger", 0.15).value), max_window_s=float(p("max_window_s", 8.0).value))
+            nrmse_trigger=float(p("nrmse_trigger", 0.15).value), max_window_s=float(p("max_window_s", 8.0).value),
+            max_lag_s=float(p("max_lag_s", 10.0).value), min_speed_mps=float(p("min_speed_mps", 0.1).value))
+        self.n_logged = 0
         self.magnet_enabled = bool(p("magnet_layer", True).value)
         self.pub = self.create_publisher(TwinParameters, TOPIC_PARAMETERS, QOS_LATCHED)
         self.lock = threading.Lock()
@@ -56,6 +62,12 @@ class UpdaterNode(Node):
         if last is not None:
             self.get_logger().info(f"republishing parameters rev {last.revision} from {self.core.history.path}")
             self._publish(last)
+
+    def _drain_log(self) -> None:
+        """Print the core's new log lines (call with the lock held)."""
+        for line in self.core.log[self.n_logged:]:
+            self.get_logger().info(line)
+        self.n_logged = len(self.core.log)
 
     def _publish(self, pub) -> None:
         m = TwinParameters()
@@ -84,6 +96,7 @@ class UpdaterNode(Node):
         try:
             with self.lock:
                 pub = self.core.on_modes(list(msg.modes), stamp)
+                self._drain_log()
         except UserError as exc:
             self.get_logger().error(f"{TOPIC_MODES}: {exc}")
             return
@@ -104,11 +117,11 @@ class UpdaterNode(Node):
         with self.lock:
             if self.worker is not None and self.worker.is_alive():
                 return
-            e = self.core.residual_ready(blk)
-            if e is None:
+            job = self.core.take_magnet_job(blk)       # copies of the window's streams + current parameters
+            self._drain_log()
+            if job is None:
                 return
-            self.core._res.clear()
-            job = self.core.snapshot_magnet_job()      # copies of the buffers + current parameters
+            e = job["residual_nrmse"]
 
         def work():
             from maglev_ros.errors import UserError
@@ -119,6 +132,7 @@ class UpdaterNode(Node):
                 return
             with self.lock:                            # short: accept + store in the history
                 pub = self.core.accept_magnet_update(result)
+                self._drain_log()
             if pub is not None:
                 self.get_logger().info(f"magnet update accepted: rev {pub.revision}")
                 self._publish(pub)

@@ -214,6 +214,7 @@ class OnlineTwin:
         self.stepper: TwinStepper | None = None
         self.t0_ns: int | None = None
         self.revision = 0
+        self.frame_id = "twin"
         self.n_resync = 0
         self.n_dropped = 0
         # predictable channels
@@ -260,8 +261,11 @@ class OnlineTwin:
     def _line(self, spans: list[dict] | None = None) -> dict:
         return {"spans": self.spans if spans is None else spans}
 
-    def set_parameters(self, names: Sequence[str], values: Sequence[float]) -> dict[str, float]:
-        """Adopt parameter values (dotted design paths, see module docstring); rebuilds the twin."""
+    def set_parameters(self, names: Sequence[str], values: Sequence[float],
+                       source_revision: int | None = None) -> dict[str, float]:
+        """Adopt parameter values (dotted design paths, see module docstring); rebuilds the twin.
+        ``source_revision``: the TwinParameters revision adopted; outputs computed from then on
+        carry ``frame_id`` "twin rev <n>" (the updater ignores residuals of older revisions)."""
         if len(names) != len(values):
             raise UserError(f"twin parameters: {len(names)} names but {len(values)} values")
         design = copy.deepcopy(self.design)
@@ -291,6 +295,8 @@ class OnlineTwin:
         self.design, self.spans, self.config = design, spans, config
         self.parameters.update(adopted)
         self.revision += 1
+        if source_revision is not None:
+            self.frame_id = f"twin rev {int(source_revision)}"
         if self.stepper is not None:
             self._rebuild()
         return adopted
@@ -596,8 +602,8 @@ class OnlineTwin:
             if not ok.all():
                 res[~ok] = np.nan
                 valid = False
-        p_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, pred, "twin")
-        r_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, res, "twin")
+        p_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, pred, self.frame_id)
+        r_blk = Block.from_arrays(blk.stamp_ns, blk.sample_rate_hz, chans, units, res, self.frame_id)
         return TwinOutput(group, blk, p_blk, r_blk, valid)
 
     def feed(self, items: Iterable[tuple[str, Block]]) -> list[TwinOutput]:

@@ -24,6 +24,9 @@ Decisions (choices; the paper updates offline):
   (``irregularity.twin_input.profile_for_twin`` succeeds on the window; no fallback reconstruction
   online). Otherwise it logs once why it waits (``wait``; the node prints ``log``). Accepted when
   its NRMSE on that window is below the current parameters' NRMSE.
+- Stale residuals: the twin stamps its outputs' ``frame_id`` "twin rev <n>" with the revision of
+  the parameters it adopted; residual blocks of a revision older than the accepted one (computed
+  before the twin adopted the update, the twin lags the stream) are not judged.
 - Restart: ``restore()`` returns the last accepted record of the history (republished as is).
 
 Published parameter names are the twin's dotted design paths (``guideway.youngs_modulus_pa``,
@@ -48,6 +51,14 @@ from maglev_ros.updating.history import ParameterHistory
 from maglev_ros.updating.magnet_layer import MagnetLayer, PassEvidence, nrmse
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
 from maglev_ros.updating.pipeline import TWIN_NAMES, PassRecording, modal_target, pass_evidence
+
+
+def _twin_revision(frame_id: str) -> int | None:
+    """The parameter revision a residual block was computed with (frame_id "twin rev <n>")."""
+    parts = str(frame_id).split()
+    if len(parts) == 3 and parts[0] == "twin" and parts[1] == "rev" and parts[2].isdigit():
+        return int(parts[2])
+    return None
 
 
 def _stretches(mask: np.ndarray, x: np.ndarray) -> list[tuple[float, float]]:
@@ -102,6 +113,7 @@ class OnlineUpdater:
         self.min_speed_mps, self.highpass_hz = float(min_speed_mps), float(highpass_hz)
         self.last_residual_nrmse: float | None = None
         self._said: set[str] = set()
+        self._revision = 0
         self.md: Metadata | None = None
         self.nominal = None
         self.current: dict[str, dict] = {}          # accepted parameters (maglev-params/1 entries)
@@ -111,11 +123,17 @@ class OnlineUpdater:
         self.log: list[str] = []
 
     # ------------------------------------------------------------------ state
+    @property
+    def revision(self) -> int:
+        """Revision of the accepted parameters (0: none yet)."""
+        return int(self._revision)
+
     def restore(self) -> Publication | None:
         rec = self.history.last()
         if rec is None:
             return None
         self.current = {n: dict(v) for n, v in rec["parameters"].items()}
+        self._revision = int(rec["revision"])
         f = (rec.get("data_used") or {}).get("frequencies_hz")
         self._last_freqs = None if f is None else np.asarray(f, float)
         return publication_from_record(rec)
@@ -136,6 +154,7 @@ class OnlineUpdater:
         merged = {**self.current, **params}
         rec = self.history.append(merged, data_used, fit)
         self.current = merged
+        self._revision = int(rec["revision"])
         return publication_from_record(rec)
 
     # ------------------------------------------------------------------ guideway layer
@@ -218,6 +237,12 @@ class OnlineUpdater:
         residual stream restarts the evidence window."""
         if block.n_samples == 0:
             return None
+        rev = _twin_revision(getattr(block, "frame_id", ""))
+        if rev is not None and rev < self.revision:
+            self._res.clear()
+            self.wait(f"stale{self.revision}", f"residuals of twin revision {rev}: waiting for the twin to adopt "
+                                               f"revision {self.revision}")
+            return None
         data = np.asarray(block.data, float)
         if not np.all(np.isfinite(data)):
             self._res.clear()
@@ -239,12 +264,14 @@ class OnlineUpdater:
             self.wait("short", f"{span_s:.1f} s of valid residual evidence, need {self.magnet_min_s:g} s")
             return None
         tr = np.concatenate([x.times_s() for x in self._res])
-        ta, a, ach = self._series(TOPIC_VEHICLE_ACCEL, tr[0], tr[-1])
-        if ta is None or ta[0] > tr[0] + 0.05 or ta[-1] < tr[-1] - 0.05:
-            self.wait("accel", f"measured {TOPIC_VEHICLE_ACCEL} does not cover the residual window "
-                               f"{tr[0]:.2f}-{tr[-1]:.2f} s")
-            return None
         r = np.concatenate([np.asarray(x.data, float) for x in self._res])
+        ta, a, ach = self._series(TOPIC_VEHICLE_ACCEL, tr[0], tr[-1])
+        both = np.zeros(tr.size, bool) if ta is None else (tr >= ta[0]) & (tr <= ta[-1])
+        if not both.any() or tr[both][-1] - tr[both][0] < self.magnet_min_s:
+            self.wait("accel", f"measured {TOPIC_VEHICLE_ACCEL} covers less than {self.magnet_min_s:g} s of the "
+                               f"residual window {tr[0]:.2f}-{tr[-1]:.2f} s")
+            return None
+        tr, r = tr[both], r[both]
         rch = self._res[-1].channels
         pairs = [(i, ach.index(c)) for i, c in enumerate(rch) if c in ach]
         if not pairs:
@@ -261,12 +288,21 @@ class OnlineUpdater:
 
     def on_residual(self, block) -> Publication | None:
         """``residual_ready`` then, when warranted, ``run_magnet_layer`` (synchronous)."""
+        job = self.take_magnet_job(block)
+        if job is None:
+            return None
+        return self.accept_magnet_update(self.compute_magnet_update(job, job["residual_nrmse"]))
+
+    def take_magnet_job(self, block) -> dict | None:
+        """``residual_ready``; when the layer should run, the snapshot of its window (the residual
+        evidence window then starts afresh). For a caller that runs the layer elsewhere."""
         e = self.residual_ready(block)
         if e is None:
             return None
         job = self.snapshot_magnet_job()
+        job["residual_nrmse"] = e
         self._res.clear()
-        return self.accept_magnet_update(self.compute_magnet_update(job, e))
+        return job
 
     def run_magnet_layer(self, residual_nrmse: float | None = None) -> Publication | None:
         """Synchronous: snapshot (the current residual window), compute, accept."""

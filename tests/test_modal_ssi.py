@@ -16,11 +16,19 @@ T = 120.0
 
 
 def _statistical_tol(model, r, duration_s):
-    """Asymptotic std of a frequency/damping estimate of a white-noise-driven mode,
-    sqrt(zeta / (omega T)) (relative for frequency, absolute for damping; the Cramer-Rao order of
-    magnitude for an oscillator observed for T seconds)."""
+    """Cramer-Rao std of a frequency/damping estimate of a white-noise-driven mode,
+    sqrt(zeta / (omega T)) (relative for frequency, absolute for damping; checked against the
+    multichannel bound of the exact structure and an oracle estimator in test_modal_accuracy.py)."""
     w = 2 * np.pi * model.frequency_hz[r]
     return np.sqrt(model.damping_ratio[r] / (w * duration_s))
+
+
+# Error budget in units of that bound (bench/bench_modal_accuracy.py, 80 records of the nominal
+# structure): the default estimator's frequency std is <= 1.35 x the bound and its |bias| <= 0.85 x
+# the bound on every mode (damping: std <= 1.6 x, |bias| <= 0.7 x), so an error beyond 5.5 x
+# the bound is a >= 3 sigma event (p < 3e-3 per mode): a regression, not bad luck. A fixed 0.2 % cannot be asserted for every mode: at 120 s the bound of the
+# 23.5 Hz mode is 0.09-0.12 %, so even an efficient estimator misses 0.2 % on 3-9 % of records.
+K_BOUND = 5.5
 
 
 @pytest.mark.parametrize("seed,variant,excitation", [
@@ -41,11 +49,8 @@ def test_ambient_accuracy_against_truth(seed, variant, excitation):
     for r in truth:
         m = min(found, key=lambda mm: abs(mm.frequency_hz - model.frequency_hz[r]))
         s = _statistical_tol(model, r, T)
-        # targets 0.2 % / 0.3 pp, relaxed only where 3.5 x the statistical limit is larger
-        ftol = max(0.002, 3.5 * s)
-        ztol = max(0.003, 3.5 * s)
-        assert abs(m.frequency_hz / model.frequency_hz[r] - 1) < ftol
-        assert abs(m.damping_ratio - model.damping_ratio[r]) < ztol
+        assert abs(m.frequency_hz / model.frequency_hz[r] - 1) < K_BOUND * s
+        assert abs(m.damping_ratio - model.damping_ratio[r]) < K_BOUND * s
         shape = m.shape_vector(model.channels)
         assert mac(shape, model.shapes[:, r]) > 0.98
         assert m.mpc > 0.95 and m.mpd < 10.0
@@ -154,6 +159,8 @@ def test_user_errors(bad, msg):
 
 
 def test_user_error_options():
+    with pytest.raises(UserError, match="polish"):
+        SSICov(polish="lsq")
     with pytest.raises(UserError, match="orders"):
         SSICov(block_rows=2, orders=range(2, 81, 2)).fit(np.random.default_rng(0).standard_normal((4000, 3)), FS)
     with pytest.raises(UserError, match="channels"):

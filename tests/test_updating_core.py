@@ -56,7 +56,7 @@ def test_guideway_layer_modes_only_ridge(fe, frho, fkb, seed):
     span = _span()
     truth = _truth(span, fe, frho, fkb)
     f_true, tgt = _measure(truth, seed)
-    up = GuidewayLayer(n_particles=60, n_iterations=60, seed=seed).fit(span, tgt)
+    up = GuidewayLayer(n_particles=30, n_iterations=30, seed=seed).fit(span, tgt)
     # updated frequencies vs the true structure's frequencies
     assert np.max(np.abs(np.array(up.frequencies_updated_hz) / f_true - 1)) < 0.005
     # the common scale of E, rho, kb is a ridge: E and rho are not identifiable alone
@@ -85,7 +85,7 @@ def test_guideway_layer_static_deflection_pins_scale(fe, frho, fkb, seed):
     g = Guideway([truth])
     d = np.array([g.static_displacement(x, -F, [6.192])[0] for x in X])
     d += 2e-6 * np.random.default_rng(seed).standard_normal(d.size)
-    up = GuidewayLayer(n_particles=60, n_iterations=60, seed=seed).fit(span, tgt, StaticTarget(6.192, X, F, d))
+    up = GuidewayLayer(n_particles=30, n_iterations=30, seed=seed).fit(span, tgt, StaticTarget(6.192, X, F, d))
     assert all(up.identifiable[:2])
     tv = np.array([truth.props.youngs_modulus_pa, truth.props.density_kg_m3])
     assert np.all(np.abs(np.array(up.values[:2]) / tv - 1) < 0.02)
@@ -105,7 +105,7 @@ def test_elman_surrogate_frequencies_heldout():
     cfg = twin_config()
     space = guideway_space(cfg)
     model = SpanModel(_span(cfg))
-    U = optimal_lhs(160, 3, seed=1)
+    U = optimal_lhs(160, 3, seed=1, n_candidates=1)   # LHS quality is tested below; 1 candidate saves ~10 s
     X = np.array([space.from_unit(u) for u in U])
     Y = np.array([model.modes(x)[0] for x in X])
     # independent held-out set: plain random points (not LHS) in the same box
@@ -117,7 +117,7 @@ def test_elman_surrogate_frequencies_heldout():
 
 
 def test_optimal_lhs_strata_and_maximin():
-    u = optimal_lhs(40, 3, seed=3)
+    u = optimal_lhs(40, 3, seed=3, n_candidates=3)
     for j in range(3):
         assert sorted(np.floor(u[:, j] * 40).astype(int)) == list(range(40))
     rnd = np.random.default_rng(3).random((40, 3))

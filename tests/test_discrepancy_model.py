@@ -89,3 +89,43 @@ def test_sensor_error_applies_scale_offset_drift():
     spec = base_spec(md).with_(sensor_error=(("G1", 2.0, 0.1, 0.05),))
     y = predict(spec, rec)["G1"]
     assert np.allclose(y, 0.1 + 0.05 * (t - t[0]))
+
+
+# ---------------------------------------------------------------------------------------------
+# magnet_nonlinearity: smooth current saturation in the twin's force kernel
+def _sat_run(limit, speed=25.0, dur=2.5):
+    from maglev_ros.twin.coupling import TwinStepper
+    from maglev_ros.twin.design import default_line
+    cfg = twin_config()
+    line = default_line(cfg, 3)
+    irr = lambda x: 1e-3 * np.sin(2 * np.pi * x / 5.0)     # 5 Hz at 25 m/s
+    st = TwinStepper(cfg, line, sensors={"m": 18.0}, irregularity=irr, fs_out_hz=1000.0,
+                     start_speed_mps=speed, current_limit_a=limit)
+    return cfg, st.advance(dur, speed)
+
+
+def test_current_saturation_off_or_far_away_is_the_plain_twin():
+    cfg, r0 = _sat_run(None)
+    _, r1 = _sat_run(1e4)               # tanh(x / L) = x / L to 1e-9 for |x| << L
+    assert np.max(np.abs(r1.magnet_gap_m - r0.magnet_gap_m)) < 1e-9
+    assert np.max(np.abs(r1.magnet_current_a - r0.magnet_current_a)) < 1e-6
+
+
+def test_saturated_current_stays_inside_the_headroom_and_gaps_grow():
+    cfg, r0 = _sat_run(None)
+    i0 = cfg.levitation.static_current_a
+    on = r0.time_s > 0.5                 # after the start transient
+    peak = np.max(np.abs(r0.magnet_current_a - i0))
+    lim = 1.3 * peak
+    _, r1 = _sat_run(lim)
+    d1 = np.abs(r1.magnet_current_a - i0)
+    # I_eff - I0 = L tanh(.) never reaches L; the force iteration converged (Newton)
+    assert d1.max() < lim
+    assert r1.iterations.max() < cfg.numerics.max_iterations
+    # less force authority: the magnets follow the rail less tightly (larger gap variation)
+    s0 = np.std(r0.magnet_gap_m[on], axis=0)
+    s1 = np.std(r1.magnet_gap_m[on], axis=0)
+    assert np.all(s1 > s0)
+    # tanh compression of the peak: the effective excursion is at most L tanh(I_demand / L) with
+    # I_demand >= the unsaturated peak (the saturated magnet asks for more, never less)
+    assert d1.max() >= lim * math.tanh(peak / lim) * 0.9

@@ -8,7 +8,7 @@ plausible, and how to say it to a rail engineer.
 |---|---|---|---|
 | bearing_stiffness | boundary_condition | log10 kb factor of one span end | that span's mode lower, larger response near that end, mostly when the vehicle is there |
 | control_delay | control | lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line |
-| magnet_nonlinearity | magnetic_force | current limit [A] | clipped current / extra gap excursions where demand is high |
+| magnet_nonlinearity | magnetic_force | current headroom L / peak demand | saturating current (I0 + L tanh((I-I0)/L)): extra gap excursions where demand is high |
 | ambient_excitation | excitation | log10 modal force PSD | guideway vibration at its modes before entry and after exit (no vehicle) |
 | girder_stiffness_loss | guideway_structure | relative EI loss of one span | that span deflects more, its modes drop |
 | carbody_flexibility | vehicle_structure | car-body bending frequency [Hz] | vehicle accel band near the bending frequency |
@@ -222,6 +222,36 @@ def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float
                       plausible=plaus, describe=desc)
 
 
-MAGNET_NONLINEARITY_WHY = ("magnet_nonlinearity (current saturation) needs a hook in the twin's force kernel "
-                           "that is not available yet; a stronger gap exponent is, to first order, a change of "
-                           "the calibrated gain kp")
+def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float, static_current_a: float) -> Hypothesis:
+    """Magnet current saturation (chopper/core): the force sees I0 + L tanh((I - I0) / L).
+
+    Parameter: p = L / demand_a, the saturation current headroom L relative to the calibrated
+    twin's largest current excursion ``demand_a`` on the training pass (so one bound fits every
+    line and speed); the twin with p near 1 loses levitation, above ~4 saturation is invisible.
+    A smooth limit keeps the linearised magnet (slope 1 at the static current), so it is not a
+    change of the calibrated gains in disguise: it only compresses large current demands."""
+    demand = max(float(demand_a), 1e-6)
+
+    def apply(sp, p):
+        return sp.with_(current_limit_a=float(p[0]) * demand)
+
+    def plaus(p):
+        if p[0] > 3.0:
+            return False, (f"fitted current headroom {p[0]:.1f} times the largest demand means the current "
+                           f"never saturates")
+        if p[0] < 1.05:
+            return False, f"fitted current headroom {p[0]:.2f} times the largest demand would lose levitation"
+        return True, ""
+
+    def desc(p, sp):
+        L = float(p[0]) * demand
+        return (f"The levitation magnets cannot deliver the current the control asks for at high demand: the "
+                f"current saturates about {L:.2f} A from its static {static_current_a:.1f} A (supply voltage "
+                f"or iron saturation), so the force lags the demand where the rail is roughest and the gaps "
+                f"vary more than the twin predicts.",
+                {"current_headroom_a": L, "static_current_a": float(static_current_a),
+                 "headroom_over_peak_demand": float(p[0])})
+    return Hypothesis("magnet_nonlinearity", "magnet_nonlinearity", ("headroom_over_peak_demand",), (1.02,),
+                      (4.0,), (1.5,), apply,
+                      location={"position_m": None, "span": None, "channels": vehicle_channels},
+                      plausible=plaus, describe=desc)

@@ -195,7 +195,6 @@ class Diagnoser:
                                                       f"residual than the hypotheses fitted in full (screening)"})
         for t in tried:
             rejected.append({"effect": t["effect"], "why": f"{t['label']}: {t['why']}"})
-        rejected.append({"effect": "magnet_nonlinearity", "why": cat.MAGNET_NONLINEARITY_WHY})
         if same_heldout:
             rejected.append({"effect": "(all)", "why": "only one pass given: the held-out check used the "
                                                       "training pass itself (weaker evidence)"})
@@ -241,6 +240,10 @@ class Diagnoser:
         hyps = cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
         if veh:
             hyps += [cat.control_delay_hypothesis(veh), cat.carbody_hypothesis(veh)]
+            demand = _current_demand_a(spec, rds)
+            if demand > 0:
+                hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,
+                                                                spec.config.levitation.static_current_a))
         if gw:
             rd = rds[0]
             shape = ambient_shape(spec, rd)
@@ -286,6 +289,19 @@ class Diagnoser:
                 "parameters": params,
                 "evidence": {"heldout_nrmse_before": v.heldout_before, "heldout_nrmse_after": v.heldout_after,
                              "delta_bic": float(dbic)}}
+
+
+def _current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
+    """Largest |I - I0| of the calibrated twin's magnets over its whole run on the training passes
+    (start transient included: a saturating twin must survive it too)."""
+    from .model import simulate
+    peak = 0.0
+    for rd in rds:
+        res = simulate(spec, rd.rec)
+        if res is None or res.magnet_current_a.size == 0:
+            continue
+        peak = max(peak, float(np.abs(res.magnet_current_a - spec.config.levitation.static_current_a).max()))
+    return peak
 
 
 def _per_group(per_channel: dict, groups: dict) -> dict:

@@ -13,6 +13,8 @@ pieces, without changing the twin files:
 - control delay: the levitation current lags the control law by a first-order lag with time
   constant tau (``coil_inductance_h = tau R``: the twin's coil-dynamics hook), the first-order
   Pade-free approximation of a pure delay, exact to O((w tau)^2) at the levitation frequencies;
+- magnet nonlinearity: smooth current saturation I0 + L tanh((I - I0)/L) in the twin's force
+  kernel (``TwinStepper(current_limit_a=L)``, :mod:`maglev_ros.twin.coupling`);
 - sensor errors (scale, offset, drift) act on the predicted channel after the simulation;
 - stochastic additions (ambient excitation) act on band powers (see :mod:`.features`).
 """
@@ -48,7 +50,7 @@ class ModelSpec:
     control_lag_s: float = 0.0
     carbody_bend_hz: float | None = None
     carbody_zeta: float = 0.02
-    current_limit_a: float | None = None                    # |I - I0| limit (magnet_nonlinearity)
+    current_limit_a: float | None = None                    # saturation L [A] (magnet_nonlinearity)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
@@ -151,7 +153,7 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
     spans = spec.effective_spans()
     st = TwinStepper(cfg, spans, sensors=dict(sensors), irregularity=irregularity, fs_out_hz=fs_out_hz,
                      start_position_m=start_position_m, start_speed_mps=start_speed_mps,
-                     t0_s=t0_s, init="rest")
+                     t0_s=t0_s, init="rest", current_limit_a=spec.current_limit_a)
     changed = False
     if spec.bearing_factor and any(f != (1.0, 1.0) for f in spec.bearing_factor):
         fes = list(st.guideway.spans_fe)
@@ -195,10 +197,6 @@ def guideway_modal(spec: ModelSpec):
                 fes[i] = assemble_span(spans[i], cfg.numerics.n_elements_per_span, kb_ends=(kb * fl, kb * fr))
         gw.spans_fe = tuple(fes)
     return gw.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
-
-
-def _limit_current(res: PassResult, spec: ModelSpec) -> PassResult:
-    return res
 
 
 _CACHE: dict = {}

@@ -38,6 +38,7 @@ from maglev_ros.twin.guideway import Guideway, ModalBasis
 from maglev_ros.twin.levitation import VehicleSystem, build_vehicle
 
 METHODS = ("newmark", "separated")
+_NO_EXCESS = np.zeros(1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -181,13 +182,21 @@ class TwinStepper:
     def __init__(self, config: TwinConfig, line: Any = None, *, sensors: Any = None,
                  irregularity: Any = None, fs_out_hz: float = 1000.0, start_position_m: float = 0.0,
                  start_speed_mps: float = 0.0, t0_s: float = 0.0, method: str = "newmark",
-                 dt_max_s: float | None = None, init: str = "static", block_steps: int = 1024):
+                 dt_max_s: float | None = None, init: str = "static", block_steps: int = 1024,
+                 current_limit_a: float | None = None):
         if method not in METHODS:
             raise UserError(f"method: expected one of {METHODS}, got {method!r}")
         if not fs_out_hz > 0:
             raise UserError(f"fs_out_hz: expected a positive rate, got {fs_out_hz!r}")
         self.config = config
         self.method = method
+        if current_limit_a is not None and not current_limit_a > 0:
+            raise UserError(f"current_limit_a: expected a positive current headroom [A] or None, got {current_limit_a!r}")
+        # magnet current saturation (default off): the force sees I0 + L tanh((I - I0) / L) with
+        # L = current_limit_a [A] (see _kernel); Newmark scheme only
+        if current_limit_a is not None and method != "newmark":
+            raise UserError("current_limit_a: current saturation is available with method='newmark' only")
+        self.current_limit_a = None if current_limit_a is None else float(current_limit_a)
         self.spans: tuple[SpanSpec, ...] = line_spans(line, config)
         num = config.numerics
         self.guideway = Guideway(self.spans, num.n_elements_per_span)
@@ -374,6 +383,13 @@ class TwinStepper:
         self.speed_mps = v_new
         return PassResult.concat(parts)
 
+    def _saturation(self, lev) -> tuple:
+        """(sat, unused, L, unused) for the kernel: smooth current limit L = current_limit_a."""
+        lim = self.current_limit_a
+        if lim is None or not math.isfinite(lim):
+            return False, 0.0, 0.0, _NO_EXCESS
+        return True, 0.0, float(lim), _NO_EXCESS
+
     def _empty(self) -> PassResult:
         m, nd, ns = self._m, self.vehicle.model.n_dof, self.sensor_x_m.size
         z = np.zeros
@@ -410,7 +426,7 @@ class TwinStepper:
                 self._gq, self._c2zw, pre["phi"], pre["dphi"], pre["phiT"], pre["r"], pre["rd"],
                 np.ascontiguousarray(vel, dtype=float), S_all, SEN_all,
                 state[0], state[1], state[2], state[3], state[4], state[5],
-                out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it)
+                out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it, *self._saturation(lev))
         self._x, self._u, self._q, self._qd, self._qdd, self._F = state
         self._k += ns
         self.position_m = float(pos[-1])
@@ -441,10 +457,44 @@ def _mv_loop(A, x):
     return out
 
 
+def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GL, phi, phiT, dphi, gq, SEN, a2, v, m):
+    """Newton step dN for res(N) = F_true(N) - F_coupled(N) = 0 with saturating currents.
+
+    Within a step the command current and the gap are affine in the force remainder N (rail
+    through the condensed guideway compliance P, Q; vehicle through GL), so the Jacobian is exact
+    up to the force law's curvature: J = diag(dF/dI [unclipped]) D_I + diag(dF/dgap) D_gap - SEN."""
+    m2 = 2 * m
+    m3 = 3 * m
+    P = phi @ (gq.reshape(-1, 1) * phiT)
+    Qm = a2 * P + v * (dphi @ (gq.reshape(-1, 1) * phiT))
+    dy = -(P @ SEN)
+    dyd = -(Qm @ SEN)
+    gi = np.ascontiguousarray(GL[m3:m3 + m])
+    gz = np.ascontiguousarray(GL[:m])
+    D_i = np.ascontiguousarray(gi[:, :m]) @ dy + np.ascontiguousarray(gi[:, m:m2]) @ dyd + gi[:, m2:m3]
+    D_z = np.ascontiguousarray(gz[:, :m]) @ dy + np.ascontiguousarray(gz[:, m:m2]) @ dyd + gz[:, m2:m3]
+    D_g = dy - D_z
+    f = Cc * (cur / gap) ** 2
+    th = np.tanh((cur_cmd - I0) / lim)
+    dF_di = 2.0 * f / cur * (1.0 - th * th)
+    dF_dg = -2.0 * f / gap
+    J = dF_di.reshape(-1, 1) * D_i + dF_dg.reshape(-1, 1) * D_g - SEN
+    return np.linalg.solve(J, res)
+
+
 def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O, OD, Ey, Eyd, gq, c2zw,
             phi_all, dphi_all, phiT_all, r_all, rd_all, vel, S_all, SEN_all,
-            x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it):
+            x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
+            sat=False, i_lo=0.0, i_hi=0.0, sat_excess=np.zeros(1)):
     """Time loop over one block (state arrays x, u, q, qd, qdd, F updated in place).
+
+    ``sat``: magnet current saturation (``TwinStepper.current_limit_a`` = L, off by default): the
+    force is made by I_eff = I0 + L tanh((I - I0) / L) (smooth: slope 1 at the static current, so
+    the linearised model is unchanged, and |I_eff - I0| < L; a hard clip makes the EMS magnet
+    lose levitation as soon as demand exceeds L, a smooth limit degrades gradually like a
+    saturating core/chopper). The plain update N += res diverges when the current saturates
+    (the control law's acceleration feed-through path is cut), so with ``sat`` the force
+    remainder is solved by Newton (:func:`_sat_newton_step`). ``i_lo``, ``sat_excess`` unused.
 
     Plain numpy code that numba can compile unchanged (it is jitted when numba is installed,
     ~20x faster; otherwise it runs as ordinary Python)."""
@@ -500,10 +550,17 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
             o = oxp + _mv(GL, ucur)
             gap = g0 + y - o[:m]
             cur = I0 + o[m3:m4]
+            if sat:
+                cur_cmd = cur
+                cur = I0 + i_hi * np.tanh((cur_cmd - I0) / i_hi)
             Ft = Cc * (cur / gap) ** 2
             if newmark:
                 res = Ft - Fc
-                N = N + res
+                if sat:
+                    N = N - _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GL, phi, phiT, dphi,
+                                             gq, SEN_all[i], a2, v, m)
+                else:
+                    N = N + res
                 Fc = Ft
                 if np.abs(res).max() < tol_abs:
                     break
@@ -534,6 +591,8 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
             o2 = _mv(O, xc) + _mv(OD, uc)
             gap = g0 + y - o2[:m]
             cur = I0 + o2[m3:m4]
+            if sat:
+                cur = I0 + i_hi * np.tanh((cur - I0) / i_hi)
             rec_x[j] = xc
             rec_u[j] = uc
             rec_q[j] = qc
@@ -556,6 +615,7 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
 try:  # optional accelerator
     import numba as _numba
     _mv = _numba.njit(cache=True)(_mv_loop)
+    _sat_newton_step = _numba.njit(cache=True)(_sat_newton_step)
     _KERNEL = _numba.njit(cache=True)(_kernel)
     HAVE_NUMBA = True
 except Exception:  # pragma: no cover - numba missing or broken: plain Python (same results, slower)

@@ -52,9 +52,13 @@ irregularity (joined by a half-cosine taper of ``taper_m`` inside each valid str
 magnet measures the rail before the trailing ones arrive, but the profiler can only finish a stretch
 after its filter edges (~1-2 s at 0.8 Hz): the twin therefore steps the vehicle only up to the time
 at which the profile reaches ``ahead_m`` beyond the leading magnet, lagging the stream by at most
-``max_lag_s`` (beyond that it steps on with zero irregularity ahead). Guideway outputs come from
-the same stepper, so they lag by the same amount but are always valid (the guideway response is
-dominated by the moving load, not by the rail irregularity). A vehicle output sample is VALID
+``max_lag_s`` (beyond that it steps on with zero irregularity ahead). The profile is refreshed at most every
+``profile_period_s`` of stream time (a refresh re-processes the profiler's uncommitted tail). Guideway outputs come from
+the same stepper, so they lag by the same amount; they are always marked valid (the girder
+deflection is dominated by the moving load). Guideway ACCELERATIONS do carry the dynamic magnet
+forces that the irregularity excites: with a reconstructed profile (even the offline unloaded one
+of ``twin_input``) their NRMSE with the true parameters is 0.2-0.5 on the paper pass (displacement
+0.02), so judge guideway parameters by displacements and modes rather than by raw accelerations. A vehicle output sample is VALID
 when every magnet of the vehicle has been over the measured stretch (inside its tapers) for at
 least ``settle_s`` (the control transient after entering from zero irregularity, and the static
 start). Invalid vehicle samples get NaN residuals and the output's ``valid`` flag is False (the
@@ -180,7 +184,7 @@ class OnlineTwin:
                  fs_hz: float | None = None, dt_max_s: float | None = 2.5e-4, resync_m: float = 0.05,
                  max_pending_s: float = 30.0, parameters: Mapping[str, float] | None = None,
                  max_lag_s: float = 6.0, ahead_m: float = 0.5, taper_m: float = 0.5, settle_s: float = 0.5,
-                 profile_period_s: float = 0.5, profiler_options: Mapping[str, Any] | None = None):
+                 profile_period_s: float = 1.0, profiler_options: Mapping[str, Any] | None = None):
         md = metadata if isinstance(metadata, Metadata) else metadata_from_dict(dict(metadata), "twin metadata")
         self.metadata = md
         self.kind = md.run_kind
@@ -239,6 +243,7 @@ class OnlineTwin:
         self._buf_t: list[np.ndarray] = []
         self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": [], "ok": []}
         self._seen_position = False
+        self._seen_vehicle = False
         self._offsets = np.asarray(md.magnet_offsets_m if self.kind == "pass" else (), float)
         if self.irregularity_source == "vehicle" and self.kind == "pass" and self._offsets.size:
             from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
@@ -463,8 +468,10 @@ class OnlineTwin:
         if self.irregularity_source in ("fixed", "random"):
             return True
         end_s = block.stamp_ns * 1e-9 + block.n_samples / block.sample_rate_hz
-        if self._newest_s - end_s >= self.max_lag_s:
-            self.n_forced += 1
+        lag_s = self._newest_s - end_s
+        if lag_s >= self.max_lag_s or (self.irregularity_source == "vehicle" and not self._seen_vehicle
+                                       and lag_s >= 1.0):
+            self.n_forced += 1       # no profile in time (or no vehicle streams to measure one)
             return True
         pos = block.channel("position_m").astype(float)
         lead = float(np.max(pos)) + float(self._offsets.max(initial=0.0)) + self.ahead_m
@@ -513,6 +520,7 @@ class OnlineTwin:
         self._pending.append((topic, block))
         self._note_time(block)
         if self._profiler is not None and topic in _PROFILER_KEYS:
+            self._seen_vehicle = True
             self._profiler.partial_fit(**{_PROFILER_KEYS[topic]: block})
         if self._pos_queue:
             self._pump()

@@ -155,8 +155,14 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             d["model"]["reasons"] = [f"also improves the held-out fit, but less than the resonator on span "
                                      f"{best[0].span_id} at {best[0].resonator.freq_hz:.1f} Hz"]
         if d["model"]["accepted"]:
+            # the finding is now the modelled resonator: its band is where the resonator lives; the
+            # band where the residual showed (e.g. an existing mode it detunes) is kept beside it
             d["kind"] = "added_resonator"
-            d["explanation"] = rf.explanation(d["frequency_hz"])
+            d["residual_band_hz"] = list(d["frequency_hz"])
+            f = rf.resonator.freq_hz
+            d["frequency_hz"] = [float(f * (1 - max(0.05, 2 * rf.resonator.damping_ratio))),
+                                 float(f * (1 + max(0.05, 2 * rf.resonator.damping_ratio)))]
+            d["explanation"] = rf.explanation(d["residual_band_hz"])
             d["location"] = {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id}
         else:
             d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"])

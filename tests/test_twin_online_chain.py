@@ -100,6 +100,42 @@ def test_twin_measures_the_irregularity_and_judges_the_vehicle_only_where_covere
     assert sum(1 for o, *_ in got if o.group.startswith("guideway") and o.valid) == n_g
 
 
+def test_twin_with_a_profile_message_stream_waits_for_it_and_judges_only_covered_vehicle(tmp_path):
+    """irregularity_source topic: the profile arrives as messages (an IncrementalProfiler fed the
+    same blocks, published every 0.5 s of stream like the irregularity node, point-magnet band)."""
+    from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
+    bag = simulate("paper", tmp_path / "p", sets=CHEAP + ["lead_in_s=3.0"], seed=21).bag
+    md, items = _read(bag)
+    prof = IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m, channel_pairs=magnet_channel_pairs(md),
+                               band_speed_mps=0.8 * md.nominal_speed_mps, highpass_hz=0.8, spacing_m=0.02,
+                               magnet_length_m=0.0)
+    keys = {"/testline/vehicle/accel": "accel", "/testline/vehicle/gap": "gap", TOPIC_VEHICLE_POSITION: "position"}
+    tw = OnlineTwin(md, parameters=_truth_params(bag), irregularity_source="topic", dt_max_s=5e-4)
+    outs, last_pub, n_msgs = [], -np.inf, 0
+    for tp, b in items:
+        if tp in keys:
+            prof.partial_fit(**{keys[tp]: b})
+        t = b.times_s()[-1]
+        if t - last_pub >= 0.5:
+            last_pub = t
+            try:
+                res = prof.result()
+            except Exception:          # noqa: BLE001  (not enough data yet: the node publishes nothing)
+                res = None
+            if res is not None and np.isfinite(res.irregularity_m).sum() >= 2:
+                assert tw.set_irregularity_profile(res.position_m[0], res.spacing_m, res.irregularity_m)
+                n_msgs += 1
+        outs += [(o, n_msgs) for o in tw.on_block(tp, b)]
+    outs += [(o, n_msgs) for o in tw.finish()]
+    veh = [(o, n) for o, n in outs if o.group == "vehicle_accel"]
+    assert not any(o.valid for o, n in veh if n == 0)          # nothing judged before the first message
+    valid = [o for o, _n in veh if o.valid]
+    assert len(valid) > 0.25 * len(veh)
+    res = np.concatenate([o.residual.data for o in valid])
+    meas = np.concatenate([o.measured.data for o in valid])
+    assert np.all(nrmse(res, meas) < 0.2), nrmse(res, meas)
+
+
 KP_NOM, KV_NOM = 6500.0, 35.0
 KP_TRUE, KV_TRUE = 1.2 * KP_NOM, 0.85 * KV_NOM
 

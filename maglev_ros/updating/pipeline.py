@@ -443,6 +443,9 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
     document and the details (provenance says how each pass's irregularity was obtained)."""
     t_start = time.perf_counter()
     say = log or (lambda s: None)
+    for p in passes:                  # cheap input checks before the SSI of the ambient record
+        if Path(p).resolve() == Path(ambient).resolve():
+            raise UserError(f"{p}: the same bag is given as --ambient and --pass")
     md_a, modal_res, amb_info = identify_ambient(ambient)
     cfg0 = twin_config_from_metadata(md_a.raw)
     span, target, tinfo = modal_target(modal_res.modes, md_a, cfg0, max_modes)

@@ -18,8 +18,10 @@ Decisions (choices; the paper updates offline):
   residual stream restarts the evidence window, so vehicle residuals are judged only where the
   twin used the measured profile. When at least ``magnet_min_s`` seconds of contiguous valid
   evidence exist (at most ``max_window_s``) and its NRMSE exceeds ``nrmse_trigger``, the magnet
-  layer runs on THAT window (accel, gap, position cut to it) with the current guideway, and only if
-  the window contains what it needs: accel + gap of the same magnets and position over the window,
+  layer runs on the ``max_window_s`` of vehicle streams ENDING with that window (accel, gap,
+  position cut to it: the irregularity reconstruction needs several seconds of context for its
+  high-pass edges; it starts after the last sample slower than ``min_speed_mps``) with the current
+  guideway, and only if the window contains what it needs: accel + gap of the same magnets and position over the window,
   speed above ``min_speed_mps`` throughout, and a valid irregularity
   (``irregularity.twin_input.profile_for_twin`` succeeds on the window; no fallback reconstruction
   online). Otherwise it logs once why it waits (``wait``; the node prints ``log``). Accepted when
@@ -36,7 +38,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -48,9 +49,9 @@ from maglev_ros.errors import UserError
 from maglev_ros.twin.design import line_spans, twin_config_from_metadata, with_guideway, with_levitation
 from maglev_ros.updating.guideway_layer import GuidewayLayer, SpanModel
 from maglev_ros.updating.history import ParameterHistory
-from maglev_ros.updating.magnet_layer import MagnetLayer, PassEvidence, nrmse
+from maglev_ros.updating.magnet_layer import MagnetLayer, make_evidence
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
-from maglev_ros.updating.pipeline import TWIN_NAMES, PassRecording, modal_target, pass_evidence
+from maglev_ros.updating.pipeline import TWIN_NAMES, modal_target
 
 
 def _twin_revision(frame_id: str) -> int | None:
@@ -284,6 +285,13 @@ class OnlineUpdater:
         if e <= self.nrmse_trigger:
             self.wait("fits", f"vehicle residual NRMSE {e:.3f} <= trigger {self.nrmse_trigger:g}: gains fit")
             return None
+        # the layer's irregularity reconstruction needs context: a full max_window_s of vehicle
+        # streams ending with the residual window (the evidence keeps growing meanwhile)
+        t_first = min((b[0].times_s()[0] for b in self._buf.values() if b), default=math.inf)
+        if t_first > tr[-1] - self.max_window_s + 0.05:
+            self.wait("context", f"residual NRMSE {e:.3f} > trigger, but only {max(tr[-1] - t_first, 0):.1f} s of "
+                                 f"vehicle streams buffered, the magnet layer takes {self.max_window_s:g} s")
+            return None
         return e
 
     def on_residual(self, block) -> Publication | None:
@@ -360,7 +368,6 @@ class OnlineUpdater:
         keep_p = (tp >= lo - 1.0) & (tp <= hi + 1.0)
         from types import SimpleNamespace as NS
         from maglev_ros.irregularity.twin_input import profile_for_twin
-        from maglev_ros.updating.magnet_layer import make_evidence
         fs = 1.0 / float(np.median(np.diff(ta[keep])))
         acc = NS(time_s=ta[keep], data=a[keep], channels=tuple(ach), sample_rate_hz=fs)
         keep_g = (tg >= lo) & (tg <= hi)

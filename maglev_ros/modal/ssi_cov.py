@@ -60,21 +60,25 @@ and on at least one of the six modes below 150 Hz in 3.8 % (nominal structure; 9
 120 s by any estimator. Since std ~ 1/sqrt(T): 0.2 % = 2.6 sigma on the first mode (about 1 % of
 records failing) needs T ~ 175 s for an efficient estimator and ~250 s for ours (1.2 x the bound).
 Measured (80 records, nominal structure, 120 s), frequency std / bound per mode 23.5 .. 132 Hz:
-plain SSI-cov (``polish=None``) 1.19-1.27, 1.06, 1.29-1.70, 1.30-1.39, 1.77-2.07, 1.72-2.15 (it
+plain SSI-cov (``polish=None``) 1.19-1.27, 1.06-1.11, 1.29-1.70, 1.30-1.39, 1.77-2.07, 1.72-2.15 (it
 discards up to 3/4 of the information on the upper modes); with the default Whittle
-maximum-likelihood polish of each selected pole (:mod:`maglev_ros.modal.polish`) 1.18, 1.06-1.17,
+maximum-likelihood polish of each selected pole (:mod:`maglev_ros.modal.polish`) 1.18-1.21, 1.06-1.17,
 1.21-1.43, 1.14-1.22, 1.21-1.26, 1.24-1.39, i.e. 14-35 % lower std on 43.8-132 Hz, unchanged on
-the two lowest modes; damping std 1.06-1.35 x its bound. The remaining ~1.2 x comes from what an
+the two lowest modes; damping std 0.8-1.6 x its bound. The remaining ~1.2 x comes from what an
 estimator must not assume: the polish fits a band of +-20 half-power half-widths (capped at
 +-30 % of f) with a free spectral tilt, because the excitation colour and sensor dynamics are
-unknown (with the tilt fixed and wider bands it reaches 1.0-1.1 x on white excitation but is
-biased by up to 0.4 % on coloured excitation). Records whose worst mode misses 0.2 %: 12.5 % with
-and without the polish (40 records; dominated by the 23.5 Hz mode at 1.2 x its bound, 0.2 % =
-1.8 sigma). Residual bias: +0.04..0.06 % on the 43.77 Hz partner of the close pair (imperfect
-spatial separation of correlated modal responses), <= 0.02 % elsewhere. Alternatives measured and
-not adopted: more block rows / longer lags and averaging over the orders of the stable cluster
-(the mode value is already the cluster median) did not move the std by more than the sampling
-error; all channels are already references.
+unknown (without the tilt it reached 0.9-1.2 x but was biased by up to 0.43 % on the upper
+modes by the mismatch of the assumed peak shape across the band; with the tilt and a wider band,
++-40 half-widths / 50 %, it was biased by up to 0.18 % on coloured excitation). Records whose
+worst mode misses 0.2 %: 10-15 % with the polish, 12.5-22.5 % without (40-record runs; dominated
+by the 23.5 Hz mode at 1.2 x its bound, where 0.2 % = 1.8 sigma). Residual bias: +0.03..0.06 % on the 43.8 Hz partner of the close pair (imperfect
+spatial separation of correlated modal responses; SSI-cov alone +0.00..0.04 %), <= 0.03 %
+elsewhere. A randomized structure (variant 4, 30 records) gives the same picture: std / bound
+1.25, 0.83, 1.17, 1.11, 1.24, 1.29 with the polish vs 1.28, 0.88, 1.13, 1.46, 1.83, 1.92 without.
+Alternatives measured on the same 30 records and not adopted: 60 or 80 block rows (longer lags)
+raise the std (43.8 Hz: 0.23 / 0.16 % vs 0.15 %; 79.7 Hz: 0.11 / 0.12 % vs 0.08 %); the mean
+over the orders of the stable cluster equals the median used (within 3 %); all channels are
+already references.
 
 Hand-written instead of using koma-python / pyOMA2: those build the Hankel matrix from the full
 lagged data matrices and redo an SVD/pseudo-inverse per order, which is far slower (see

@@ -1,7 +1,8 @@
 """Benchmark of the discrepancy diagnosis on concealed-effect cases (tests/discrepancy_cases.py).
 
 Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|both] [--jobs 2] [--limit N]
-       [--json OUT]
+       [--only EFFECT,...] [--json OUT]   (cases are written to OUT as they finish)
+       .venv/bin/python bench/bench_discrepancy.py --table OUT   (tables of a saved, even partial, run)
 
 Per effect: cases, correct effect, wrong effect, missed, localization error (girder/bearing: |reported
 place centre - true place| in m; sensor_error: share with the right channel), median held-out NRMSE
@@ -121,28 +122,46 @@ def main():
     ap.add_argument("--split", default="both", choices=("tune", "heldout", "both"))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0)
-    ap.add_argument("--only", default="")
+    ap.add_argument("--only", default="", help="comma-separated effects (clean, girder_attachment, ...)")
     ap.add_argument("--json", default="")
+    ap.add_argument("--table", default="", help="print the tables of a --json file (also a partial one)")
     a = ap.parse_args()
+    if a.table:
+        with open(a.table) as f:
+            saved = json.load(f)
+        for split, v in saved.items():
+            print_table(f"split {split}", v["cases"])
+        return
     from discrepancy_cases import case_specs
     splits = ("tune", "heldout") if a.split == "both" else (a.split,)
     out = {}
     t0 = time.time()
     for split in splits:
         specs = case_specs(split)
-        jobs = [(i, s, split) for i, s in enumerate(specs) if not a.only or (s["effect"] or "clean") == a.only]
+        only = set(filter(None, a.only.split(",")))
+        jobs = [(i, s, split) for i, s in enumerate(specs) if not only or (s["effect"] or "clean") in only]
         if a.limit:
             jobs = jobs[:a.limit]
+        res = []
         with ProcessPoolExecutor(a.jobs) as ex:
-            res = list(ex.map(run_one, jobs))
-        for r in res:
-            mp = r["report"]["missing_physics"]
-            print(f"{r['case']:40s} found={[m['effect'] for m in mp]} {r['seconds']:.0f}s", flush=True)
+            # results as they come (a long run interrupted still leaves its cases in --json)
+            for r in ex.map(run_one, jobs):
+                res.append(r)
+                mp = r["report"]["missing_physics"]
+                print(f"{r['case']:40s} found={[m['effect'] for m in mp]} {r['seconds']:.0f}s", flush=True)
+                if a.json:
+                    _dump(a.json, {**out, split: {"cases": res}})
         out[split] = {"summary": print_table(f"split {split}", res), "cases": res}
     print(f"\nwall time {time.time() - t0:.0f} s")
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(out, f, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+        _dump(a.json, out)
+
+
+def _dump(path, out):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(out, f, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    os.replace(tmp, path)
 
 
 if __name__ == "__main__":

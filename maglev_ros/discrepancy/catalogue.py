@@ -46,6 +46,7 @@ class Hypothesis:
     plausible: Callable[[np.ndarray], tuple[bool, str]] = lambda p: (True, "")
     describe: Callable[[np.ndarray, ModelSpec], tuple[str, dict]] = lambda p, s: ("", {})
     band_hz: tuple[float, float] | None = None
+    log_search: bool = False                     # scale-like parameter: search on a geometric grid
 
     @property
     def category(self) -> str:
@@ -142,9 +143,9 @@ def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
         return (f"The levitation control acts on measurements about {p[0] * 1e3:.1f} ms old (sensor filtering, "
                 f"bus and chopper latency): the magnets follow the rail less tightly, so gap and magnet "
                 f"acceleration differ from the twin all along the line.", {"delay_s": float(p[0])})
-    return Hypothesis("control_delay", "control_delay", ("delay_s",), (0.0,), (0.03,), (0.006,), apply,
+    return Hypothesis("control_delay", "control_delay", ("delay_s",), (2.5e-4,), (0.03,), (0.006,), apply,
                       location={"position_m": None, "span": None, "channels": vehicle_channels},
-                      plausible=plaus, describe=desc)
+                      plausible=plaus, describe=desc, log_search=True)
 
 
 def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
@@ -161,7 +162,7 @@ def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
                 f"magnet accelerations (the twin models the body as rigid).", {"bending_frequency_hz": float(p[0])})
     return Hypothesis("carbody_flexibility", "carbody_flexibility", ("bending_frequency_hz",), (3.0,), (25.0,),
                       (8.0,), apply, location={"position_m": None, "span": None, "channels": vehicle_channels},
-                      plausible=plaus, describe=desc)
+                      plausible=plaus, describe=desc, log_search=True)
 
 
 def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, float], dict]) -> Hypothesis:
@@ -254,4 +255,4 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
     return Hypothesis("magnet_nonlinearity", "magnet_nonlinearity", ("headroom_over_peak_demand",), (1.02,),
                       (4.0,), (1.5,), apply,
                       location={"position_m": None, "span": None, "channels": vehicle_channels},
-                      plausible=plaus, describe=desc)
+                      plausible=plaus, describe=desc, log_search=True)

@@ -163,6 +163,7 @@ class Diagnoser:
             fits.append((hf, v, dbic))
         for (n, t0, t1, val) in drops:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
+        fits = _peer_check(fits, rd_train[0].rec)
         accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
         accepted.sort(key=lambda t: t[1].heldout_after)
         chosen = []
@@ -334,6 +335,30 @@ class Diagnoser:
                 "parameters": params,
                 "evidence": {"heldout_nrmse_before": v.heldout_before, "heldout_nrmse_after": v.heldout_after,
                              "delta_bic": float(dbic)}}
+
+
+def _peer_check(fits: list, rec: Recording) -> list:
+    """The sensor_error signature is ONE channel off while the others agree with the twin: a
+    scale/offset/drift fit that a channel of the same group (same quantity, e.g. the other
+    magnet's gap) matches by at least half its training delta BIC points to a mismatch common to
+    the group (the model, or the irregularity rebuilt from those very channels), not one sensor.
+    Such fits are rejected with that reason (dropouts are data facts and are kept)."""
+    group = {n: c.group for n, c in rec.channels.items()}
+    sens = {hf.hyp.location["channels"][0]: d for hf, v, d in fits
+            if hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout")}
+    out = []
+    for hf, v, d in fits:
+        if v.accepted and hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout"):
+            n = hf.hyp.location["channels"][0]
+            peers = [(p, dp) for p, dp in sens.items() if p != n and group.get(p) == group.get(n)]
+            if peers:
+                p, dp = min(peers, key=lambda t: t[1])
+                if d < 0 and dp <= 0.5 * d:
+                    v = Verdict(False, v.reasons + (f"{p} (same quantity) improves almost as much (delta BIC {dp:+.0f} "
+                                                    f"vs {d:+.0f}): a mismatch common to those channels, not one "
+                                                    f"faulty sensor",), v.heldout_before, v.heldout_after, v.delta_bic)
+        out.append((hf, v, d))
+    return out
 
 
 def _current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:

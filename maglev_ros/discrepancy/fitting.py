@@ -6,7 +6,8 @@ so that weakly observable ones stay near the design). An extension with one para
 jointly: p by a bounded scalar search (scipy.optimize.minimize_scalar), and for each p the
 calibrated parameters re-fitted by one Gauss-Newton step on the Jacobian of the base fit
 (variable projection, linearised in the calibrated parameters), so a change that merely mimics a
-calibrated parameter gains nothing. Multi-parameter extensions that need no simulation (sensor
+calibrated parameter gains nothing (the scalar search starts from a coarse grid, geometric for
+scale-like parameters, and refines between the best grid point's neighbours). Multi-parameter extensions that need no simulation (sensor
 errors) are fitted by least_squares directly.
 """
 from __future__ import annotations
@@ -131,7 +132,20 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
         cache[p] = best
         return best[0] if np.isfinite(best[0]) else 1e30
     lo, hi = hyp.lower[0], (hyp.upper[0] if upper is None else min(upper, hyp.upper[0]))
-    minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"maxiter": maxiter, "xatol": 1e-3 * (hi - lo)})
+    # coarse grid first (geometric for scale-like parameters), then a bounded search between the
+    # best grid point's neighbours: a plain bounded search from the whole interval missed short
+    # control delays (it never came back below its first golden-section points)
+    n_grid = max(3, maxiter // 2)
+    if hyp.log_search and lo > 0:
+        pts = np.geomspace(lo, hi, n_grid + 2)[1:-1]
+    else:
+        pts = np.linspace(lo, hi, n_grid + 2)[1:-1]
+    vals = [rss(float(q)) for q in pts]
+    k = int(np.argmin(vals))
+    a = lo if k == 0 else float(pts[k - 1])
+    b = hi if k == n_grid - 1 else float(pts[k + 1])
+    minimize_scalar(rss, bounds=(a, b), method="bounded",
+                    options={"maxiter": max(2, maxiter - n_grid), "xatol": 1e-3 * (hi - lo)})
     p = min(cache, key=lambda q: cache[q][0])
     rs, d = cache[p]
     sp = hyp.apply(base.spec, np.array([p]))

@@ -36,7 +36,14 @@ def test_magnet_layer_recovers_true_gains_std_and_i0_ridge(measured):
     nom, gcfg, m, tv = measured
     up = _fit(gcfg, m, m["true_irregularity"])
     err = np.array(up.values) / tv - 1
-    assert up.identifiable[0]                                  # kp; kv, ka when std <= 2.5 %
+    # a 3 s pass leaves the weak direction (kp^0.3 kv^0.6 ka^1) to the model-error priors: single
+    # gains may be flagged; the well-determined combinations must then be reported and hold the truth
+    ok = [c for c in up.identifiability.combinations if c.identifiable and "I0" not in c.expression]
+    assert any(up.identifiable) or ok
+    for c in ok:
+        truth = float(np.prod(tv ** np.asarray(c.exponents[:3])))
+        assert abs(c.value / truth - 1) < 0.02, (c.expression, c.value, truth)
+        assert abs(np.log(c.value / truth)) < 3 * c.std / c.value + 2e-3, (c.expression, c.value, truth, c.std)
     assert np.all(np.abs(err)[np.array(up.identifiable)] < 0.05), err
     assert np.all(np.abs(err) < 0.10), err
     # the stated std (sandwich + model error) covers the error: |estimate - truth| / std of order 1

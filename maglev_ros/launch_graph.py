@@ -23,9 +23,9 @@ GRAPHS: dict[str, list[NodeSpec]] = {
         NodeSpec("updater", "maglev_ros.nodes.updater",
                  params={"history_path": "maglev_twin_parameters.jsonl"}),
         NodeSpec("discrepancy", "maglev_ros.nodes.discrepancy"),
-        NodeSpec("twin", "maglev_ros.nodes.twin",
-                 params={"irregularity_psd": "maglev_001", "irregularity_band_m": [1.0, 20.0],
-                         "seed": 0, "dt_max_s": 5e-4}),
+        # the twin measures the irregularity under the vehicle itself (irregularity_source
+        # "vehicle"; see maglev_ros.twin.online) and judges vehicle channels only where it has
+        NodeSpec("twin", "maglev_ros.nodes.twin", params={"irregularity_source": "vehicle", "dt_max_s": 5e-4}),
     ],
 }
 

@@ -3,6 +3,11 @@
 Starts each node of a graph as its own process, prefixes their output with the node name,
 stops them all on Ctrl-C, and, when a finite replay ends, gives the others ``linger_s`` to
 finish and then stops them too.
+
+A replay in the graph starts publishing only when every other node of the graph is up
+(``wait_nodes``, at most ``wait_timeout_s`` = 60 s: process start-up and imports take seconds on a
+loaded machine), so no node misses the beginning of the recording; it stays alive during the
+linger (``linger_s``), so its latched metadata stays available to late joiners.
 """
 from __future__ import annotations
 
@@ -30,19 +35,20 @@ def _pump(name: str, stream, out) -> None:
 
 
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
-           params_file: str | None = None, linger_s: float = 3.0, env: dict | None = None,
+           params_file: str | None = None, linger_s: float = 30.0, env: dict | None = None,
            out=sys.stderr, on_started=None, extra: list[NodeSpec] = ()) -> int:
     """Run a graph until its replay ends (or Ctrl-C). Returns the replay's exit code."""
     overrides = overrides or {}
     procs: list[Running] = []
     penv = dict(os.environ if env is None else env)
+    specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
+    others = [s.name for s in specs if not s.needs_bag]
     try:
-        for spec in list(graph(graph_name)) + list(extra):
-            if spec.needs_bag and not bag:
-                continue
+        for spec in specs:
             params = dict(spec.params)
             if spec.needs_bag:
                 params["bag"] = os.path.abspath(bag)
+                params.update({"wait_nodes": others, "wait_timeout_s": 60.0, "linger_s": float(linger_s)})
             params.update(overrides.get(spec.name, {}))
             cmd = [sys.executable, "-u", "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]
             if params_file:
@@ -57,8 +63,7 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
         replay = next((r for r in procs if r.spec.needs_bag), None)
         while True:
             if replay is not None and replay.proc.poll() is not None:
-                time.sleep(linger_s)
-                return replay.proc.returncode
+                return replay.proc.returncode       # it lingered (linger_s) before exiting
             if replay is None and all(r.proc.poll() is not None for r in procs):
                 return 0
             dead = [r for r in procs if r.proc.poll() not in (None, 0)]

@@ -16,6 +16,10 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
+    p.add_argument("--linger", type=float, default=30.0, metavar="S",
+                   help="after a finite replay ends, keep the graph running this long so the twin, "
+                        "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
+                        "layer may take minutes on a busy machine)")
 
 
 def run(args) -> int:
@@ -29,5 +33,7 @@ def run(args) -> int:
         check_rate(args.rate)
     # one process's \r progress bar garbles the merged output: the replay logs its summary instead
     replay = {"rate": float(args.rate), "fast": bool(args.fast), "progress": False}
+    if args.linger < 0:
+        raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
     return launch(args.graph, bag=args.bag, overrides={"replay": replay},
-                  params_file=args.params_file)
+                  params_file=args.params_file, linger_s=args.linger)

@@ -13,7 +13,9 @@ Parameters (``--ros-args -p name:=value`` or ``--params-file``):
   paused (bool, false)           start paused
   progress (bool, true)          progress line on stderr
   wait_subscribers (int, 0)      before starting, wait until every data topic has this many
-  wait_timeout_s (float, 10)     ... subscribers, at most this long
+  wait_nodes (string[], none)    before starting, wait until these nodes are in the graph (a
+                                 launcher lists the graph's other nodes, so none misses the start)
+  wait_timeout_s (float, 10)     ... subscribers / nodes, at most this long
   linger_s (float, 0.5)          keep the node alive this long after the last message
 
 Timing follows the messages' header stamps (the contract's time truth; a block goes out at
@@ -60,6 +62,7 @@ class ReplayNode(Node):
         start_paused = p("paused", False).value
         self.progress_on = p("progress", True).value
         self.wait_subscribers = p("wait_subscribers", 0).value
+        self.wait_nodes = [n for n in p("wait_nodes", [""]).value if n]
         self.wait_timeout_s = p("wait_timeout_s", 10.0).value
         self.linger_s = p("linger_s", 0.5).value
         if not self.bag:
@@ -157,15 +160,28 @@ class _Progress:
 
 
 def _wait_for_subscribers(node: ReplayNode, executor, topics: list[str]) -> None:
-    if node.wait_subscribers <= 0:
+    if node.wait_subscribers <= 0 and not node.wait_nodes:
         return
     deadline = time.monotonic() + node.wait_timeout_s
+
+    def ready() -> bool:
+        names = {n.lstrip("/") for n in node.get_node_names()}
+        return (all(n.lstrip("/") in names for n in node.wait_nodes)
+                and all(node.count_subscribers(t) >= node.wait_subscribers for t in topics))
+
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.05)
-        if all(node.count_subscribers(t) >= node.wait_subscribers for t in topics):
+        if ready():
+            if node.wait_nodes:
+                # a node appears in the graph just before its constructor creates its subscriptions
+                end = time.monotonic() + 1.0
+                while time.monotonic() < end:
+                    executor.spin_once(timeout_sec=0.05)
             return
-    node.get_logger().warning(f"waited {node.wait_timeout_s} s for {node.wait_subscribers} "
-                              "subscriber(s); starting anyway")
+    names = {n.lstrip("/") for n in node.get_node_names()}
+    absent = [n for n in node.wait_nodes if n.lstrip("/") not in names]
+    what = f"nodes {', '.join(absent)}" if absent else f"{node.wait_subscribers} subscriber(s) per topic"
+    node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what}; starting anyway")
 
 
 def replay(node: ReplayNode, executor) -> None:

@@ -71,8 +71,13 @@ def analyse(J_white: np.ndarray, names: Sequence[str], values: np.ndarray,
             estimable_tol: float = 1e-3) -> Identifiability:
     """``J_white``: whitened Jacobian w.r.t. log-parameters; ``values``: parameter values at the optimum.
     ``combinations``: (expression, exponents over ``names``) candidates to report."""
-    U, s, Vt = np.linalg.svd(J_white, full_matrices=True)
     p = len(names)
+    # thin SVD (a full U of a long residual vector is n x n: 12 GB for two 10 s passes); zero rows
+    # pad a short J so that Vt still spans the whole parameter space (null space included)
+    Jw = np.asarray(J_white, dtype=float)
+    if Jw.shape[0] < p:
+        Jw = np.vstack([Jw, np.zeros((p - Jw.shape[0], p))])
+    _, s, Vt = np.linalg.svd(Jw, full_matrices=False)
     s_full = np.zeros(p)
     s_full[: s.size] = s
     smax = s_full.max() if s_full.size else 0.0

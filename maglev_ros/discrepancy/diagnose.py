@@ -234,7 +234,7 @@ class Diagnoser:
                          f"{sp.span_id}, which the catalogue attributes to the instrument, could also be the structure."}]
             if disc:
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, max_resonators=1,
-                                         log=notes.append)
+                                         log=notes.append, worst_span_fallback=False)
             ok = [d for d in disc if (d.get("model") or {}).get("accepted")]
             held_chosen = min(v.heldout_after for _, v, _ in chosen)
             if ok and ok[0]["model"]["evidence"]["heldout_nrmse_after"] < held_chosen * (1 - cfg.acceptance.min_rel_gain):

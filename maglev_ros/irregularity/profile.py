@@ -32,6 +32,16 @@ Band (choices, stated in every result):
   that wants to compare with a known profile applies the same filter to it (``band_filter`` in
   :meth:`IrregularityResult.to_dict`).
 
+Grid and sample step: samples are bin-averaged onto the grid. Above ``spacing_m * fs`` (20 m/s
+for 0.02 m at 1 kHz, 10 m/s at 500 Hz) consecutive samples of one magnet lie more than one bin
+apart, so the grid has empty bins between filled ones although nothing is missing. Such holes up
+to ``ceil(v_max / fs / spacing_m) + 1`` bins long (one sample step, at least 2 bins) are filled by
+linear interpolation between the neighbouring bins; longer holes are real gaps (dropouts, slow
+sections, ends) and stay NaN. (Before this rule holes were filled only up to 2 bins, so at 500 Hz
+with 0.02 m any pass above 30 m/s fell apart into fragments shorter than the band-pass needs and
+the profile came out empty.) Linear interpolation of samples 4 per ``min_wavelength_m`` apart is
+accurate to the band: ``min_wavelength_m >= 4 v_max / fs`` already.
+
 Magnets are combined by averaging on the common grid; ``std_m`` is the standard error of that
 mean from the spread between magnets (NaN where fewer than two magnets cover a point); agreement
 between magnets is reported as pairwise correlation of their band-passed profiles.
@@ -370,8 +380,11 @@ class InertialProfiler:
                 "position_coverage", "/testline/vehicle/position",
                 f"{int(nopos.sum())} accel samples lie outside the position record; not mapped",
                 float(t[nopos][0]), float(t[nopos][-1])))
+        v_mov = v[moving & np.isfinite(v)]
+        step_m = float(v_mov.max()) / fs if v_mov.size else 0.0
         return _finish(acc, specs, warns, biases, self, v_band, lam_min, lam_max,
-                       kind="unloaded" if deflection is not None else "loaded")
+                       kind="unloaded" if deflection is not None else "loaded",
+                       sample_step_m=step_m)
 
 
 def _slow_warnings(t, v, v_band, stop, dt) -> list[DataWarning]:
@@ -479,8 +492,15 @@ def _bandpass_segments(y, sos, min_len, trim) -> tuple[np.ndarray, int]:
     return out, dropped
 
 
+def _max_hole_bins(sample_step_m: float, spacing_m: float) -> int:
+    """Longest run of empty grid bins that is only the sample step, not missing data."""
+    if not (sample_step_m > 0 and math.isfinite(sample_step_m)):
+        return 2
+    return max(2, int(math.ceil(sample_step_m / spacing_m)) + 1)
+
+
 def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, lam_max,
-            kind) -> IrregularityResult:
+            kind, sample_step_m: float = 0.0) -> IrregularityResult:
     dx = cfg.spacing_m
     if acc.j0 is None or acc.n == 0:
         fc = cfg.highpass_hz
@@ -499,7 +519,7 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
     min_len = int(math.ceil(2 * lam_max / dx))
     profs = []
     for k, _ in enumerate(specs):
-        y = _fill_small_holes(acc.mean(k))
+        y = _fill_small_holes(acc.mean(k), _max_hole_bins(sample_step_m, dx))
         f, dropped = _bandpass_segments(y, sos, min_len, trim)
         if dropped:
             warns.append(DataWarning(
@@ -719,7 +739,8 @@ class IncrementalProfiler:
                 f"({self.slow_m:.3g} m travelled); those positions are dropped",
                 value=self.slow_m))
         biases = [float(np.mean(self.biases.get(k, [0.0]))) for k in range(len(self.specs))]
-        return _finish(acc, self.specs, warns, biases, c, v_band, lam_min, lam_max, "loaded")
+        return _finish(acc, self.specs, warns, biases, c, v_band, lam_min, lam_max, "loaded",
+                       sample_step_m=self.v_max / fs)
 
 
 def magnet_channel_pairs(metadata, accel_channels=None, gap_channels=None) -> dict | None:

@@ -54,7 +54,6 @@ class ModelSpec:
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
-    resonator: tuple[float, float, float] | None = None     # discovery: (freq_hz, position_m, mass ratio)
     dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
     dt_max_s: float | None = None
 

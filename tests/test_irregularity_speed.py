@@ -95,3 +95,31 @@ def test_real_gaps_are_not_bridged():
     assert res.valid.any() and runs.size >= 2 and not res.valid[np.searchsorted(
         res.position_m, rec.x_ref_m[i0 + 50] + rec.magnet_offsets_m[0])]
     assert math.isfinite(_compare(res, rec)[0])
+
+
+def test_streaming_profiler_high_speed_500hz():
+    """The streaming profiler uses the same hole rule (its v_max / fs) and matches the batch fit."""
+    from maglev_ros.irregularity.profile import IncrementalProfiler
+    v = 45.0
+    rec = make_recording(speed_kmh=v * 3.6, seed=11, fs_hz=500.0, length_m=500.0)
+    inc = IncrementalProfiler(rec.magnet_offsets_m, nominal_gap_m=rec.nominal_gap_m,
+                              band_speed_mps=v, highpass_hz=HP_HZ, spacing_m=DX_M,
+                              magnet_length_m=0.0, edge_s=1.5 / HP_HZ)
+    n, npos = rec.accel.time_s.size, rec.position.time_s.size
+    from types import SimpleNamespace as NS
+    for i0 in range(0, n, 50):                       # 0.1 s blocks
+        sl = slice(i0, i0 + 50)
+        t0, t1 = rec.accel.time_s[sl][0], rec.accel.time_s[sl][-1]
+        pm = (rec.position.time_s >= t0) & (rec.position.time_s <= t1)
+        inc.partial_fit(
+            accel=NS(time_s=rec.accel.time_s[sl], data=rec.accel.data[sl], channels=rec.accel.channels,
+                     sample_rate_hz=500.0),
+            gap=NS(time_s=rec.gap.time_s[sl], data=rec.gap.data[sl], channels=rec.gap.channels,
+                   sample_rate_hz=500.0),
+            position=NS(time_s=rec.position.time_s[pm], data=rec.position.data[pm],
+                        channels=rec.position.channels, sample_rate_hz=None))
+    res = inc.result()
+    assert npos > 0 and res.valid.any()
+    assert np.all(np.diff(np.flatnonzero(res.valid)) == 1)
+    c, err = _compare(res, rec)
+    assert c >= 0.99 and err <= 0.15, (c, err)

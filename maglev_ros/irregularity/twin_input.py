@@ -25,6 +25,21 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    0.02 m/s^2 accelerometer stays below ~10 um there; waves that long are followed by the
    levitation control and barely accelerate the magnets -- the twin sees them as absent).
    The result states the band; outside it the profile is zero and ``valid`` is False.
+
+   Speed (checked 15-60 m/s, tests/test_irregularity_speed.py): everything that is cut scales with
+   time, not distance. The time edges (``edge_s`` = 1.5 / f_c = 1.9 s at 0.8 Hz at both ends of a
+   clean stretch) and the spatial trim (one ``max_wavelength_m`` = v / (2 f_c), i.e. 1 / (2 f_c) =
+   0.63 s of travel) are what the two filters need, so a pass of given duration keeps the same
+   valid fraction at any speed: valid length = travelled - 2 v (edge_s + 1 / (2 f_c)). (Measured on
+   synthetic passes with a 0.02 m/s^2-noise accelerometer: a spatial trim of 0.5 wavelength raises
+   the error in the first/last 20 m from 1-5 % to 5-24 % of the band RMS, so the trim stays at 1;
+   ``edge_s`` = 0.6 / f_c gives similar edge errors and ~2.25 s x v more profile, but changed the
+   twin fits on the discrepancy cases by -0.01..+0.07 NRMSE, so the default stays 1.5 / f_c; pass
+   ``edge_s`` to trade.) The failure "no valid irregularity left for the twin" above ~30 m/s at
+   500 Hz was NOT the band or the edges but the position grid: a magnet then moves more than
+   3 grid bins (0.02 m) per sample and the profiler bridged only 2-bin holes, so the profile fell
+   apart into fragments shorter than the band-pass needs; holes up to one sample step are now
+   bridged (see :mod:`.profile`, "Grid and sample step").
 4. **Magnets.** Every magnet's profile is high-passed in time by the one shared filter (gap part
    and acceleration part together, :func:`.integration.double_integrate` ``plus_highpassed``),
    band-passed in space, then averaged; with the deflection removed the magnets agree to the

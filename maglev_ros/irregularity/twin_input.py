@@ -32,7 +32,7 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    0.63 s of travel) are what the two filters need, so a pass of given duration keeps the same
    valid fraction at any speed: valid length = travelled - 2 v (edge_s + 1 / (2 f_c)). (Measured on
    synthetic passes with a 0.02 m/s^2-noise accelerometer: a spatial trim of 0.5 wavelength raises
-   the error in the first/last 20 m from 1-5 % to 5-24 % of the band RMS, so the trim stays at 1;
+   the error in the first/last 20 m from 1-5 % to 4-24 % of the band RMS, so the trim stays at 1;
    ``edge_s`` = 0.6 / f_c gives similar edge errors and ~2.25 s x v more profile, but changed the
    twin fits on the discrepancy cases by -0.01..+0.07 NRMSE, so the default stays 1.5 / f_c; pass
    ``edge_s`` to trade.) The failure "no valid irregularity left for the twin" above ~30 m/s at

@@ -4,9 +4,10 @@ Starts each node of a graph as its own process, prefixes their output with the n
 stops them all on Ctrl-C, and, when a finite replay ends, gives the others ``linger_s`` to
 finish and then stops them too.
 
-A replay in the graph starts publishing only when every other node of the graph is up
-(``wait_nodes``, at most ``wait_timeout_s`` = 60 s: process start-up and imports take seconds on a
-loaded machine), so no node misses the beginning of the recording; it stays alive during the
+A replay in the graph publishes its latched metadata only when every other node of the graph is
+up (``wait_nodes``: no node's idle timer starts early) and its data only when every data topic
+has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` = 60 s (process
+start-up and imports take seconds on a loaded machine), so no node misses the beginning; it stays alive during the
 linger (``linger_s``), so its latched metadata stays available to late joiners.
 """
 from __future__ import annotations
@@ -48,7 +49,8 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
             params = dict(spec.params)
             if spec.needs_bag:
                 params["bag"] = os.path.abspath(bag)
-                params.update({"wait_nodes": others, "wait_timeout_s": 60.0, "linger_s": float(linger_s)})
+                params.update({"wait_nodes": others, "wait_subscribers": 1, "wait_timeout_s": 60.0,
+                               "linger_s": float(linger_s)})
             params.update(overrides.get(spec.name, {}))
             cmd = [sys.executable, "-u", "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]
             if params_file:

@@ -159,29 +159,38 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _wait_for_subscribers(node: ReplayNode, executor, topics: list[str]) -> None:
-    if node.wait_subscribers <= 0 and not node.wait_nodes:
-        return
+def _wait_until(node: ReplayNode, executor, ready, what) -> bool:
     deadline = time.monotonic() + node.wait_timeout_s
-
-    def ready() -> bool:
-        names = {n.lstrip("/") for n in node.get_node_names()}
-        return (all(n.lstrip("/") in names for n in node.wait_nodes)
-                and all(node.count_subscribers(t) >= node.wait_subscribers for t in topics))
-
     while time.monotonic() < deadline:
         executor.spin_once(timeout_sec=0.05)
         if ready():
-            if node.wait_nodes:
-                # a node appears in the graph just before its constructor creates its subscriptions
-                end = time.monotonic() + 1.0
-                while time.monotonic() < end:
-                    executor.spin_once(timeout_sec=0.05)
-            return
-    names = {n.lstrip("/") for n in node.get_node_names()}
-    absent = [n for n in node.wait_nodes if n.lstrip("/") not in names]
-    what = f"nodes {', '.join(absent)}" if absent else f"{node.wait_subscribers} subscriber(s) per topic"
-    node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what}; starting anyway")
+            return True
+    node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what()}; starting anyway")
+    return False
+
+
+def _wait_for_nodes(node: ReplayNode, executor) -> None:
+    """Before anything is published (a node's idle timers must not start on the metadata)."""
+    if not node.wait_nodes:
+        return
+
+    def absent() -> list[str]:
+        names = {n.lstrip("/") for n in node.get_node_names()}
+        return [n for n in node.wait_nodes if n.lstrip("/") not in names]
+
+    if _wait_until(node, executor, lambda: not absent(), lambda: f"nodes {', '.join(absent())}"):
+        # a node appears in the graph just before its constructor creates its subscriptions
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+
+
+def _wait_for_subscribers(node: ReplayNode, executor, topics: list[str]) -> None:
+    if node.wait_subscribers <= 0:
+        return
+    _wait_until(node, executor,
+                lambda: all(node.count_subscribers(t) >= node.wait_subscribers for t in topics),
+                lambda: f"{node.wait_subscribers} subscriber(s) on every data topic")
 
 
 def replay(node: ReplayNode, executor) -> None:
@@ -203,6 +212,7 @@ def replay(node: ReplayNode, executor) -> None:
         window = dict(start_s=node.start_offset_s or None,
                       duration_s=node.duration_s if node.duration_s > 0 else None)
 
+        _wait_for_nodes(node, executor)
         if TOPIC_METADATA in available:
             for topic, msgtype, _, cdr in reader.iter_raw(topics=[TOPIC_METADATA]):
                 node.publisher_for(topic, msgtype).publish(cdr)

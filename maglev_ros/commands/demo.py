@@ -77,7 +77,7 @@ def run(args) -> int:
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     summary = NodeSpec("summary", "maglev_ros.nodes.summary",
                        params={"idle_s": 3.0, "json_out": str(graph_json.resolve())})
-    code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=5.0,
+    code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=15.0,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
                                         "wait_subscribers": 1},
                              "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})

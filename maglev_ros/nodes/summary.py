@@ -9,6 +9,7 @@ discovered from the graph (every /testline/* and /maglev/* topic). Parameters: `
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 
@@ -27,6 +28,7 @@ class SummaryNode(Node):
         self.stats: dict[str, dict] = {}
         self.t_start = time.monotonic()
         self.t_last = None
+        self._t_written = -1.0
         self.finished = False
         self.create_timer(0.2, self._tick)
 
@@ -62,16 +64,26 @@ class SummaryNode(Node):
                 st["samples"] += len(msg.data) // len(msg.channels)
         return on_msg
 
+    def _write_json(self) -> None:
+        """Atomically (a reader never sees half a file; a stop mid-write loses nothing written)."""
+        tmp = f"{self.json_out}.tmp"
+        with open(tmp, "w") as f:
+            json.dump(self.stats, f, indent=1)
+        os.replace(tmp, self.json_out)
+
     def _tick(self) -> None:
         self._subscribe_new()
         now = time.monotonic()
+        if self.json_out and self.t_last is not None and self.t_last > self._t_written:
+            # kept current while the graph runs: the launcher may stop us before we are idle
+            self._t_written = now
+            self._write_json()
         quiet = self.t_last is not None and now - self.t_last > self.idle_s
         if quiet or now - self.t_start > self.max_s:
             self.finished = True
             print(format_summary(self.stats), flush=True)
             if self.json_out:
-                with open(self.json_out, "w") as f:
-                    json.dump(self.stats, f, indent=1)
+                self._write_json()
 
 
 def format_summary(stats: dict) -> str:

@@ -638,8 +638,11 @@ def irregularity_from_signals(time_s: np.ndarray, accel_mps2: np.ndarray, gap_m:
         prof[k, inside] = np.interp(xg[inside], x[:, k], y[:, k])
     # align the magnets' smooth trends (each was detrended on its own time window) to their mean,
     # so that averaging leaves no steps where the set of covering magnets changes
+    covered = np.isfinite(prof).sum(axis=0)
     for _ in range(4):
-        mean = np.nanmean(prof, axis=0)
+        # mean over the magnets covering each point (NaN where none does, without numpy's
+        # "Mean of empty slice" warning when the magnets' stretches do not overlap)
+        mean = np.where(covered > 0, np.nansum(prof, axis=0) / np.maximum(covered, 1), np.nan)
         for k in range(prof.shape[0]):
             ok_k = np.isfinite(prof[k])
             if ok_k.sum() > detrend_order + 2:

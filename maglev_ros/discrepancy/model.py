@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class ModelSpec:
     carbody_bend_hz: float | None = None
     carbody_zeta: float = 0.02
     current_limit_a: float | None = None                    # saturation L [A] (magnet_nonlinearity)
+    resonator: Any = None                                   # discovery: added girder resonator (.resonator.Resonator)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
@@ -165,6 +166,11 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
     if changed:
         st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
         st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+    if spec.resonator is not None:
+        from .resonator import resonator_modal        # (resonator builds on this module)
+        st.modal = resonator_modal(spec.with_(resonator=None), spec.resonator)
+        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+        changed = True
     if spec.carbody_bend_hz is not None:
         vm = flexible_vehicle(st.vehicle.model, spec.carbody_bend_hz, spec.carbody_zeta)
         eq = static_equilibrium(vm)

@@ -17,8 +17,9 @@ Model (choices the papers leave open, made here):
   modal kinetic energy plus ``zeta_a`` weighted by the attachment's share (modal damping; the
   non-proportional part is neglected: a few % error in the damping of the two coupled modes);
 - modes up to the twin's cutoff are kept (at least one more than the span had).
-The twin is otherwise unchanged (:func:`.model.build_stepper`, then its modal basis is swapped the
-same way the model's own per-end-bearing extension does).
+The twin is otherwise unchanged: ``ModelSpec.resonator`` carries the attachment, and
+:func:`.model.build_stepper` swaps in this modal basis, so the model's simulation, band powers,
+residual and fit report (``.evaluate``) serve the resonator like any catalogue extension.
 
 Fit: coarse grid over frequency (inside the discovered band) and position along the span (the
 mode shapes at the attachment and at the sensors decide how the modes split; the grid covers
@@ -38,19 +39,17 @@ resonator to our FE/modal twin.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import eigh
 from scipy.optimize import minimize
 
-from maglev_ros.twin.coupling import PassResult
 from maglev_ros.twin.guideway import ModalBasis
 
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge
-from .evaluate import RecData, ambient_powers, fit_report, model_powers, residual_vector
-from .features import band_powers, nrmse_amplitude
-from .model import ModelSpec, build_stepper, guideway_modal, reference_value
+from .evaluate import RecData, fit_report, model_powers, residual_vector
+from .model import ModelSpec, guideway_modal
 
 MU_BOUNDS = (1e-3, 0.2)          # attachment mass / span mass
 ZETA_BOUNDS = (2e-3, 0.3)
@@ -99,109 +98,6 @@ def resonator_modal(spec: ModelSpec, res: Resonator) -> ModalBasis:
         owner.append(np.full(k, i)); vecs.append(phi[:n, :k])
     return ModalBasis(np.concatenate(freqs), np.concatenate(zetas), np.concatenate(owner), base.spans_fe,
                       tuple(vecs))
-
-
-_SIM_CACHE: dict = {}
-
-
-def simulate_with(spec: ModelSpec, res: Resonator, rec) -> PassResult | None:
-    """Twin pass along ``rec`` (as :func:`.model.simulate`) with the resonator attached."""
-    if rec.kind != "pass" or rec.position_time_s is None:
-        return None
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
-    key = (phys, res, id(rec))
-    hit = _SIM_CACHE.get(key)
-    if hit is not None and hit[0] is rec:
-        return hit[1]
-    fs = max(c.sample_rate_hz for c in rec.channels.values())
-    sensors = {n: c.position_m for n, c in rec.channels.items()
-               if c.group in ("guideway_accel", "guideway_disp") and c.position_m is not None}
-    tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
-    tau = float(rec.sensor_delay_s)
-    t0 = max(rec.t0_s - tau, float(tp[0])) - 1.0 / fs
-    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
-                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0, irregularity=rec.irregularity)
-    st.modal = resonator_modal(phys, res)
-    st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
-    st._setup_matrices()
-    st._x = np.zeros(st._nx)
-    st._u = np.zeros(3 * st._m)
-    nq = st.modal.n_modes
-    st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
-    st._F = st.vehicle.levitation.static_force_n.copy()
-    st._init_static()
-    parts = []
-    t = t0
-    t_end = rec.t1_s - tau + 1.0 / fs
-    while t < t_end - 1e-12:
-        tn = min(t_end, t + 0.25)
-        parts.append(st.advance(tn, float(np.interp(tn, tp, vp))))
-        t = tn
-    out = PassResult.concat(parts)
-    if tau:
-        out = replace(out, time_s=out.time_s + tau)
-    if len(_SIM_CACHE) > 128:
-        _SIM_CACHE.clear()
-    _SIM_CACHE[key] = (rec, out)
-    return out
-
-
-def model_powers_with(spec: ModelSpec, res: Resonator | None, rd: RecData) -> dict:
-    """Model band powers (twin with resonator + noise floor + stochastic extensions) per channel."""
-    if res is None:
-        return model_powers(spec, rd)
-    sim = simulate_with(spec, res, rd.rec)
-    if sim is None:
-        return model_powers(spec, rd)
-    amb = ambient_powers(spec, rd)
-    out = {}
-    for name, ch in rd.rec.channels.items():
-        if ch.group == "guideway_accel":
-            src = sim.guideway_accel_mps2[:, sim.sensor(name)]
-        elif ch.group == "guideway_disp":
-            src = sim.guideway_disp_m[:, sim.sensor(name)] + 0.0
-        elif ch.group == "vehicle_accel":
-            src = sim.magnet_accel_mps2[:, ch.magnet - 1]
-        else:
-            src = sim.magnet_gap_m[:, ch.magnet - 1]
-        y = np.interp(ch.time_s, sim.time_s, src) - reference_value(rd.rec, name)
-        p = band_powers(ch.time_s, y, ch.sample_rate_hz, rd.grid) + rd.noise[name][None, :]
-        if name in amb:
-            p = p + amb[name][None, :]
-        out[name] = p
-    return out
-
-
-def residual_with(spec: ModelSpec, res: Resonator | None, rds: list[RecData]) -> np.ndarray:
-    """Same residual vector as :func:`.evaluate.residual_vector`, with the resonator."""
-    if res is None:
-        return residual_vector(spec, rds)
-    parts = []
-    nrec = len(rds)
-    for rd in rds:
-        mp = model_powers_with(spec, res, rd)
-        nch = len(rd.rec.channels)
-        for n in rd.rec.channels:
-            am = np.sqrt(np.clip(rd.pm[n][:, rd.masks[n]], 0, None))
-            at = np.sqrt(np.clip(mp[n][:, rd.masks[n]], 0, None))
-            ok = np.isfinite(am) & np.isfinite(at)
-            den = np.sqrt(np.sum(am[ok] ** 2)) or 1.0
-            parts.append(((am - at)[ok] / den / math.sqrt(nch * nrec)).ravel())
-    return np.concatenate(parts)
-
-
-def fit_report_with(spec: ModelSpec, res: Resonator | None, rds: list[RecData]) -> tuple[float, dict]:
-    """Same measure as :func:`.evaluate.fit_report`, with the resonator."""
-    if res is None:
-        return fit_report(spec, rds)
-    per: dict[str, list] = {}
-    for rd in rds:
-        mp = model_powers_with(spec, res, rd)
-        for n in rd.rec.channels:
-            per.setdefault(n, []).append(nrmse_amplitude(rd.pm[n], mp[n], rd.masks[n][None, :]))
-    pc = {n: float(np.mean(v)) for n, v in per.items()}
-    allv = [x for v in per.values() for x in v]
-    return float(np.sqrt(np.mean(np.square(allv)))) if allv else 0.0, pc
 
 
 # ------------------------------------------------------------------------------------------
@@ -324,7 +220,7 @@ class ResonatorFinder:
                  min(max(lz, math.log(ZETA_BOUNDS[0])), math.log(ZETA_BOUNDS[1])))
             n_sims[0] += 1
             try:
-                r = residual_with(spec, make(p), rd_train)
+                r = residual_vector(spec.with_(resonator=make(p)), rd_train)
             except Exception:           # unstable twin at this trial: worst cost
                 return float(base.r0 @ base.r0) * 10 + pen
             rp, _ = project(r)
@@ -347,7 +243,7 @@ class ResonatorFinder:
                       min(max(p[2], math.log(MU_BOUNDS[0])), math.log(MU_BOUNDS[1])),
                       min(max(p[3], math.log(ZETA_BOUNDS[0])), math.log(ZETA_BOUNDS[1]))])
         res = make(p)
-        r = residual_with(spec, res, rd_train)
+        r = residual_vector(spec.with_(resonator=res), rd_train)
         rp, d = project(r)
         rss = float(rp @ rp)
         n_eff = max(10, base.r0.size // 2)
@@ -355,9 +251,9 @@ class ResonatorFinder:
         dbic = bic(rss, n_eff, k) - bic(float(base.r0 @ base.r0), n_eff, 0)
         fitted = spec.with_(cal=tuple(float(x) for x in th0 + d))
         held_before, _ = fit_report(spec, rd_test)
-        held_after, _ = fit_report_with(fitted, res, rd_test)
+        held_after, _ = fit_report(fitted.with_(resonator=res), rd_test)
         r_te0 = residual_vector(spec, rd_test)
-        r_te1 = residual_with(fitted, res, rd_test)
+        r_te1 = residual_vector(fitted.with_(resonator=res), rd_test)
         n_test = max(10, r_te0.size // 2)
         llr = 0.5 * n_test * math.log(float(r_te0 @ r_te0) / max(float(r_te1 @ r_te1), 1e-300))
         col = collinearity(r - base.r0, J)
@@ -383,7 +279,7 @@ class ResonatorFinder:
             e = rd.grid.edges_hz
             sel = (e[1:] > f_lo) & (e[:-1] < f_hi)
             for k, (sp, rs) in enumerate(((spec0, res0), (spec1, res1))):
-                mp = model_powers_with(sp, rs, rd)
+                mp = model_powers(sp.with_(resonator=rs), rd)
                 for n, ch in rd.rec.channels.items():
                     if not ch.group.startswith("guideway"):
                         continue

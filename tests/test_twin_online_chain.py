@@ -214,14 +214,18 @@ def test_updater_waits_with_one_reason_for_windows_that_lack_what_the_layer_need
     up = OnlineUpdater(tmp_path / "h.jsonl", magnet_min_s=1.0, nrmse_trigger=0.0, max_window_s=1.5)
     up.set_metadata(md.raw)
     acc = [b for tp, b in items if tp == "/testline/vehicle/accel"][:20]
+
+    def residuals_never_run_the_layer(u) -> None:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            for b in acc:
+                res = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, 0.5 * b.data, "twin")
+                assert u.on_residual(res) is None
+
     # residual blocks but no gap stream buffered: the layer must not run, and says why once
     for b in acc:
         up.on_vehicle_block("/testline/vehicle/accel", b)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)
-        for b in acc:
-            res = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, 0.5 * b.data, "twin")
-            assert up.on_residual(res) is None
+    residuals_never_run_the_layer(up)
     assert sum("/testline/vehicle/gap not buffered" in line for line in up.log) == 1, up.log
     # a stationary vehicle: no moving window
     up2 = OnlineUpdater(tmp_path / "h2.jsonl", magnet_min_s=1.0, nrmse_trigger=0.0, max_window_s=1.5)
@@ -233,10 +237,6 @@ def test_updater_waits_with_one_reason_for_windows_that_lack_what_the_layer_need
             d[:, list(b.channels).index("position_m")] = 10.0
             b = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, d, b.frame_id)
         up2.on_vehicle_block(tp, b)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)
-        for b in acc:
-            res = Block.from_arrays(b.stamp_ns, b.sample_rate_hz, b.channels, b.units, 0.5 * b.data, "twin")
-            assert up2.on_residual(res) is None
+    residuals_never_run_the_layer(up2)
     assert sum("slower than" in line for line in up2.log) == 1, up2.log
     assert not (tmp_path / "h2.jsonl").exists() or not (tmp_path / "h2.jsonl").read_text().strip()

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from .features import FrameGrid, band_powers, frame_grid, nrmse_amplitude, usable_bands
+from .features import (FrameGrid, band_powers, frame_grid, frame_means, nrmse_amplitude, rail_transmissibility,
+                       usable_bands)
 from .model import ModelSpec, guideway_modal, predict, reference_value
 from .irregularity import vehicle_over_valid
 from .recording import Recording
@@ -31,6 +32,15 @@ class RecData:
     masks: dict                      # usable bands per channel (bool, n_bands)
     noise: dict = field(default_factory=dict)    # (n_bands,) noise floor per channel
     quiet: dict = field(default_factory=dict)    # (n_frames,) quiet-frame mask per channel
+    # per magnet with an accel and a gap channel: key -> (accel, gap) names, measured squared
+    # gap-to-rail transmissibility (n_frames, n_bands) and its usable bands
+    sens_pairs: dict = field(default_factory=dict)
+    sens: dict = field(default_factory=dict)
+    sens_masks: dict = field(default_factory=dict)
+    # per such gap channel: measured frame means minus the rest value (n_frames,) and the gap's
+    # dynamic amplitude over the compared frames (their scale)
+    level: dict = field(default_factory=dict)
+    level_den: dict = field(default_factory=dict)
 
 
 def _modal_bands(grid: FrameGrid, freqs_hz: np.ndarray, rel: float = 0.12) -> np.ndarray:
@@ -74,6 +84,18 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
             if ch.on_vehicle:
                 pm[n][~ok] = np.nan
     rd = RecData(rec, grid, pm, masks)
+    for key, (a, g) in transmissibility_pairs(rec).items():
+        ca, cg = rec.channels[a], rec.channels[g]
+        s = rail_transmissibility(ca.time_s, ca.values, np.interp(ca.time_s, cg.time_s, cg.values),
+                                  ca.sample_rate_hz, grid)
+        s[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
+        m = masks[a] & masks[g] & np.any(np.isfinite(s), axis=0)
+        if m.any():
+            rd.sens_pairs[key], rd.sens[key], rd.sens_masks[key] = (a, g), s, m
+            lv = frame_means(cg.time_s, cg.values - refs[g], cg.sample_rate_hz, grid)
+            lv[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
+            dyn = pm[g][:, masks[g] & (grid.edges_hz[:-1] >= 3.0)]
+            rd.level[g], rd.level_den[g] = lv, float(np.sqrt(np.nansum(dyn))) or 1.0
     # quiet frames and noise floor from the nominal twin
     pred = predict(base, rec)
     modal = guideway_modal(base)
@@ -96,7 +118,17 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
             quiet[order[:max(2, len(order) // 5)]] = True
         rd.quiet[n] = quiet
         ex = excl if ch.group.startswith("guideway") else np.zeros_like(excl)
-        rd.noise[n] = fit_noise_floor(src[quiet], grid, masks[n], ex)
+        floor = fit_noise_floor(src[quiet], grid, masks[n], ex)
+        if src is not pm[n]:
+            # the residual's power law, extrapolated into bands where the quietest residual frames
+            # hold far less (measured on a held-out clean case: a gap floor fitted above 3 Hz put
+            # 10x the measured amplitude into the 0-3 Hz band, gap NRMSE 3.7 instead of 0.2), would
+            # call "noise" more than the channel measures at all: the floor never exceeds the mean
+            # power of the frames it was estimated from, nor the measured power of those frames
+            with np.errstate(invalid="ignore"):
+                cap = np.fmin(np.nanmean(src[quiet], axis=0), np.nanmean(pm[n][quiet], axis=0))
+            floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
+        rd.noise[n] = floor
     return rd
 
 
@@ -147,24 +179,65 @@ def _ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
 _PT_CACHE: dict = {}
 
 
-def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict]:
-    """Band powers of the physics-only prediction (cached per physics spec and recording)."""
+def transmissibility_pairs(rec: Recording) -> dict:
+    """Magnets with both an acceleration and a gap channel: {"M<k> gap/rail": (accel, gap)}."""
+    acc = {c.magnet: n for n, c in rec.channels.items() if c.group == "vehicle_accel" and c.magnet is not None}
+    gap = {c.magnet: n for n, c in rec.channels.items() if c.group == "gap" and c.magnet is not None}
+    return {f"M{k} gap/rail": (acc[k], gap[k]) for k in sorted(set(acc) & set(gap))}
+
+
+def _sens_of(rd: RecData, pred: dict) -> dict:
+    out = {}
+    for key, (a, g) in rd.sens_pairs.items():
+        ca = rd.rec.channels[a]
+        out[key] = rail_transmissibility(ca.time_s, pred[a], np.interp(ca.time_s, rd.rec.channels[g].time_s, pred[g]),
+                                         ca.sample_rate_hz, rd.grid)
+    return out
+
+
+def _levels_of(rd: RecData, pred: dict) -> dict:
+    out = {}
+    for g in rd.level:
+        ch = rd.rec.channels[g]
+        out[g] = frame_means(ch.time_s, pred[g] - reference_value(rd.rec, g), ch.sample_rate_hz, rd.grid)
+    return out
+
+
+def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict, dict]:
+    """Band powers, prediction and rail transmissibilities of the physics-only prediction (cached
+    per physics spec and recording)."""
     phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
     key = (phys, id(rd))
     hit = _PT_CACHE.get(key)
     if hit is not None and hit[0] is rd:
-        return hit[1], hit[2]
+        return hit[1], hit[2], hit[3]
     pred = predict(phys, rd.rec)
     pt = {n: band_powers(ch.time_s, pred[n] - reference_value(rd.rec, n), ch.sample_rate_hz, rd.grid)
           for n, ch in rd.rec.channels.items()}
+    st = _sens_of(rd, pred)
+    st.update(_levels_of(rd, pred))
     if len(_PT_CACHE) > 512:
         _PT_CACHE.clear()
-    _PT_CACHE[key] = (rd, pt, pred)
-    return pt, pred
+    _PT_CACHE[key] = (rd, pt, pred, st)
+    return pt, pred, st
+
+
+def model_transmissibility(spec: ModelSpec, rd: RecData) -> dict:
+    """The twin's squared gap-to-rail transmissibility per magnet pair of ``rd`` and its gap frame
+    means (keyed by the gap channel), with the spec's sensor errors and dropouts when they touch
+    those channels."""
+    _, _, st = _twin_powers(spec, rd)
+    touched = {e[0] for e in spec.sensor_error} | {d[0] for d in spec.dropouts}
+    if any(set(p) & touched for p in rd.sens_pairs.values()):
+        pred = predict(spec, rd.rec)
+        st = dict(st)
+        st.update({k: v for k, v in _sens_of(rd, pred).items() if set(rd.sens_pairs[k]) & touched})
+        st.update({k: v for k, v in _levels_of(rd, pred).items() if k in touched})
+    return st
 
 
 def model_powers(spec: ModelSpec, rd: RecData) -> dict:
-    pt, pred_phys = _twin_powers(spec, rd)
+    pt, pred_phys, _ = _twin_powers(spec, rd)
     touched = {e[0] for e in spec.sensor_error} | {d[0] for d in spec.dropouts}
     pt = dict(pt)
     if touched & set(rd.rec.channels):
@@ -182,28 +255,81 @@ def model_powers(spec: ModelSpec, rd: RecData) -> dict:
     return out
 
 
+def fit_mask(rd: RecData, name: str) -> np.ndarray:
+    """Bands of a channel that enter the fit measures (residual vector, overall NRMSE). A gap
+    channel of a magnet with a rail transmissibility enters through that feature only: its band
+    amplitudes are ruled by the reconstructed irregularity that drives the twin (measured on a
+    clean case: gap NRMSE 0.24-0.36 with the reconstructed rail, 0.014 with the true one; kept in
+    the 0-3 Hz band, the low-frequency tracking of waves longer than the reconstruction's band
+    pulled kp and kv 25-30 % off), while the transmissibility carries the levitation physics."""
+    m = rd.masks[name]
+    for _, g in rd.sens_pairs.values():
+        if g == name:
+            return np.zeros_like(m)
+    return m
+
+
+def _fit_items(spec: ModelSpec, rd: RecData, only=None) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """(measured, modelled, scale) of every fitted channel/feature of one recording: band
+    amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
+    and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's
+    dynamic amplitude, since the twin driven by a high-passed rail predicts no slow gap content).
+    ``only``: a set of channel names; then only those channels and the features built from them."""
+    mp = model_powers(spec, rd)
+    ms = model_transmissibility(spec, rd) if rd.sens else {}
+    out = []
+
+    def add(am, at):
+        ok = np.isfinite(am) & np.isfinite(at)
+        return am[ok], at[ok]
+    def use(*names):
+        return only is None or bool(set(names) & only)
+    for n in rd.rec.channels:
+        m = fit_mask(rd, n)
+        if m.any() and use(n):
+            am, at = add(np.sqrt(np.clip(rd.pm[n][:, m], 0, None)), np.sqrt(np.clip(mp[n][:, m], 0, None)))
+            out.append((am, at, float(np.sqrt(np.sum(am ** 2))) or 1.0))
+    for k in rd.sens:
+        if not use(*rd.sens_pairs[k]):
+            continue
+        m = rd.sens_masks[k]
+        am, at = add(np.sqrt(np.clip(rd.sens[k][:, m], 0, None)), np.sqrt(np.clip(ms[k][:, m], 0, None)))
+        out.append((am, at, float(np.sqrt(np.sum(am ** 2))) or 1.0))
+    for g in rd.level:
+        if not use(g):
+            continue
+        am, at = add(rd.level[g], ms[g])
+        out.append((am, at, rd.level_den[g]))
+    return out
+
+
 def residual_vector(spec: ModelSpec, rds: list[RecData]) -> np.ndarray:
+    """Normalised residuals of every fitted channel/feature (:func:`_fit_items`), each weighted
+    equally within a recording."""
     parts = []
     nrec = len(rds)
     for rd in rds:
-        mp = model_powers(spec, rd)
-        nch = len(rd.rec.channels)
-        for n in rd.rec.channels:
-            am = np.sqrt(np.clip(rd.pm[n][:, rd.masks[n]], 0, None))
-            at = np.sqrt(np.clip(mp[n][:, rd.masks[n]], 0, None))
-            ok = np.isfinite(am) & np.isfinite(at)
-            den = np.sqrt(np.sum(am[ok] ** 2)) or 1.0
-            parts.append(((am - at)[ok] / den / math.sqrt(nch * nrec)).ravel())
+        items = _fit_items(spec, rd)
+        for am, at, den in items:
+            parts.append((am - at) / den / math.sqrt(len(items) * nrec))
     return np.concatenate(parts)
 
 
-def fit_report(spec: ModelSpec, rds: list[RecData]) -> tuple[float, dict]:
-    """Overall NRMSE (RMS over channels and recordings) and per-channel NRMSE (mean over recs)."""
+def fit_report(spec: ModelSpec, rds: list[RecData], channels=None) -> tuple[float, dict]:
+    """Overall NRMSE (RMS over the recordings' fitted channels and features, :func:`_fit_items`:
+    the measure every fit and acceptance uses) and per-channel NRMSE of every measured channel
+    over all its usable bands (mean over recordings; a gap channel judged through its magnet's
+    transmissibility and frame means shows here for information only, see :func:`fit_mask`).
+    ``channels``: restrict the overall NRMSE to those channels and their features (all if None or
+    if none of them is fitted)."""
+    only = set(channels) if channels else None
     per: dict[str, list] = {}
+    allv: list[float] = []
     for rd in rds:
         mp = model_powers(spec, rd)
         for n in rd.rec.channels:
             per.setdefault(n, []).append(nrmse_amplitude(rd.pm[n], mp[n], rd.masks[n][None, :]))
+        items = _fit_items(spec, rd, only) if only else []
+        allv += [float(np.sqrt(np.sum((am - at) ** 2))) / den for am, at, den in (items or _fit_items(spec, rd))]
     pc = {n: float(np.mean(v)) for n, v in per.items()}
-    allv = [x for v in per.values() for x in v]
     return float(np.sqrt(np.mean(np.square(allv)))) if allv else 0.0, pc

@@ -29,8 +29,8 @@ def add_arguments(p) -> None:
     p.add_argument("--ambient", default=str(SAMPLE_AMBIENT),
                    help="ambient recording of the same line (default: bags/paper_ambient)")
     p.add_argument("--held-out", default=str(SAMPLE_HELD_OUT),
-                   help="a second pass, held out to test the diagnosis (default: bags/paper_pass2; "
-                        "'' for none)")
+                   help="a second pass for the diagnosis: the faster of the passes trains, the other is "
+                        "held out (default: bags/paper_pass2; '' for none)")
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
     p.add_argument("--no-analysis", action="store_true",
                    help="stop after the replay through the graph (skip step 3)")

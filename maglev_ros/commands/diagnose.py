@@ -1,6 +1,6 @@
 """``maglev-ros diagnose --ambient BAG --pass BAG [--pass BAG ...] --out DIR``.
 
-Calibrates the twin on the first pass, locates where twin and recordings differ, tests the
+Calibrates the twin on the fastest pass, locates where twin and recordings differ, tests the
 catalogue of missing physics (held out on the other passes) and writes DIR/report.json
 (schema ``maglev-diagnosis/1``) and DIR/report.html (self-contained, plots inline).
 """

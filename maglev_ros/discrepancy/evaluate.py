@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from .features import (FrameGrid, band_powers, frame_grid, frame_means, nrmse_amplitude, rail_transmissibility,
+from .features import (S_MIN_HZ, FrameGrid, band_powers, frame_grid, frame_means, nrmse_amplitude, rail_transmissibility,
                        usable_bands)
 from .model import ModelSpec, guideway_modal, predict, reference_value
 from .irregularity import vehicle_over_valid
 from .recording import Recording
 
 QUIET_REL = 1e-3
+RAIL_SNR = 10.0      # rail band power over its noise below which a transmissibility cell is not used
 
 
 @dataclass(eq=False)
@@ -38,7 +39,7 @@ class RecData:
     sens: dict = field(default_factory=dict)
     sens_masks: dict = field(default_factory=dict)
     # per such gap channel: measured frame means minus the rest value (n_frames,) and the gap's
-    # dynamic amplitude over the compared frames (their scale)
+    # whole amplitude over the compared frames (their scale)
     level: dict = field(default_factory=dict)
     level_den: dict = field(default_factory=dict)
 
@@ -84,18 +85,6 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
             if ch.on_vehicle:
                 pm[n][~ok] = np.nan
     rd = RecData(rec, grid, pm, masks)
-    for key, (a, g) in transmissibility_pairs(rec).items():
-        ca, cg = rec.channels[a], rec.channels[g]
-        s = rail_transmissibility(ca.time_s, ca.values, np.interp(ca.time_s, cg.time_s, cg.values),
-                                  ca.sample_rate_hz, grid)
-        s[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
-        m = masks[a] & masks[g] & np.any(np.isfinite(s), axis=0)
-        if m.any():
-            rd.sens_pairs[key], rd.sens[key], rd.sens_masks[key] = (a, g), s, m
-            lv = frame_means(cg.time_s, cg.values - refs[g], cg.sample_rate_hz, grid)
-            lv[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
-            dyn = pm[g][:, masks[g] & (grid.edges_hz[:-1] >= 3.0)]
-            rd.level[g], rd.level_den[g] = lv, float(np.sqrt(np.nansum(dyn))) or 1.0
     # quiet frames and noise floor from the nominal twin
     pred = predict(base, rec)
     modal = guideway_modal(base)
@@ -129,6 +118,25 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
                 cap = np.fmin(np.nanmean(src[quiet], axis=0), np.nanmean(pm[n][quiet], axis=0))
             floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
         rd.noise[n] = floor
+    for key, (a, g) in transmissibility_pairs(rec).items():
+        ca, cg = rec.channels[a], rec.channels[g]
+        s, py = rail_transmissibility(ca.time_s, ca.values, np.interp(ca.time_s, cg.time_s, cg.values),
+                                      ca.sample_rate_hz, grid, with_rail_power=True)
+        s[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
+        # only where the rail under the magnet is measured well above the sensors' noise (on a
+        # smooth guideway the ratio is one of noises: NRMSE 0.5 against a twin without noise)
+        noise_y = rd.noise[g] + rd.noise[a] / (2 * np.pi * np.maximum(grid.band_center_hz, S_MIN_HZ)) ** 4
+        with np.errstate(invalid="ignore"):
+            s[~(py > RAIL_SNR * noise_y[None, :])] = np.nan
+        m = masks[a] & masks[g] & np.any(np.isfinite(s), axis=0)
+        if m.any():
+            rd.sens_pairs[key], rd.sens[key], rd.sens_masks[key] = (a, g), s, m
+            lv = frame_means(cg.time_s, cg.values - refs[g], cg.sample_rate_hz, grid)
+            lv[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
+            # scale: the gap's whole signal over those frames (frame means and dynamics), so that a
+            # smooth guideway (tiny gap dynamics) does not blow the level misfit up
+            dyn = pm[g][:, masks[g] & (grid.edges_hz[:-1] >= 3.0)]
+            rd.level[g], rd.level_den[g] = lv, float(np.sqrt(np.nansum(dyn) + np.nansum(lv ** 2))) or 1.0
     return rd
 
 
@@ -272,8 +280,8 @@ def fit_mask(rd: RecData, name: str) -> np.ndarray:
 def _fit_items(spec: ModelSpec, rd: RecData, only=None) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """(measured, modelled, scale) of every fitted channel/feature of one recording: band
     amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
-    and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's
-    dynamic amplitude, since the twin driven by a high-passed rail predicts no slow gap content).
+    and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's whole
+    amplitude over those frames).
     ``only``: a set of channel names; then only those channels and the features built from them."""
     mp = model_powers(spec, rd)
     ms = model_transmissibility(spec, rd) if rd.sens else {}

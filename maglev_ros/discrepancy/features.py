@@ -141,7 +141,7 @@ S_MIN_HZ = 2.5      # below this the frame's 1/w^2 integration of the accelerati
 
 
 def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.ndarray, fs_hz: float,
-                          grid: FrameGrid) -> np.ndarray:
+                          grid: FrameGrid, with_rail_power: bool = False):
     """(n_frames, n_bands) squared gap-to-rail transmissibility of one magnet: band power of the
     gap over band power of the rail under it, y = z + g (magnet displacement z = -A / w^2 from the
     acceleration's spectrum, plus the gap), per Hann frame. For a linear levitation loop this is
@@ -149,16 +149,18 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     twin cancels to first order (measured on a clean case: gap band amplitudes off by 10-36 % from a
     reconstructed irregularity, this ratio within 2-12 %, the 12 % being a kp/kv mis-calibration).
     Anti-alias filters and acquisition delays common to both channels cancel too. Bands below
-    ``S_MIN_HZ`` and frames outside the signal are NaN."""
+    ``S_MIN_HZ`` and frames outside the signal are NaN. ``with_rail_power``: also return the band
+    powers of the rail y (same shape)."""
     n = int(round(grid.frame_s * fs_hz))
     w = np.hanning(n)
     f = np.fft.rfftfreq(n, 1.0 / fs_hz)
     W = band_weights(grid, f)
     starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
     out = np.full((grid.n_frames, grid.n_bands), np.nan)
+    rail = out.copy()
     ok = (starts >= 0) & (starts + n <= accel_mps2.size) & (starts + n <= gap_m.size)
     if not ok.any():
-        return out
+        return (out, rail) if with_rail_power else out
     idx = starts[ok][:, None] + np.arange(n)[None, :]
     g = gap_m[idx]
     A = np.fft.rfft(accel_mps2[idx] * w, axis=1)
@@ -167,13 +169,16 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     inv = np.zeros_like(f)
     inv[keep] = -1.0 / (2 * np.pi * f[keep]) ** 2
     Y = A * inv[None, :] + G
-    pg = (np.abs(G * keep[None, :]) ** 2) @ W.T
-    py = (np.abs(Y) ** 2) @ W.T
+    scale = np.full(f.size, 2.0 / (np.sum(w ** 2) * fs_hz) * (fs_hz / n))     # one-sided band power, as band_powers
+    scale[0] /= 2.0
+    pg = (np.abs(G * keep[None, :]) ** 2 * scale) @ W.T
+    py = (np.abs(Y) ** 2 * scale) @ W.T
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(py > 0, pg / py, np.nan)
     r[:, W[:, ~keep].sum(axis=1) > 0.5 * W.sum(axis=1)] = np.nan     # bands mostly below S_MIN_HZ
     out[ok] = r
-    return out
+    rail[ok] = py
+    return (out, rail) if with_rail_power else out
 
 
 def frame_means(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -> np.ndarray:

@@ -6,6 +6,12 @@ recording from quiet frames (the twin predicts almost nothing there: vehicle off
 smooth power law in frequency (Theil-Sen in log-log, robust to a few odd bands), with the bands
 holding guideway modes left out for guideway channels: structural vibration (e.g. from adjacent
 lines) shows as peaks at the modes and must not be absorbed into "noise".
+
+The vehicle side is compared through features the reconstructed irregularity cannot rule: each
+magnet's gap-to-rail transmissibility (:func:`.features.rail_transmissibility`, the levitation
+loop's |S(f)|^2) and its gap's frame means (sensor offsets and drifts), besides the magnet
+accelerations' band amplitudes; the gap's own band amplitudes are shown but not fitted
+(:func:`fit_mask`).
 """
 from __future__ import annotations
 

@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.stats import gamma as gamma_dist
 
-from .evaluate import RecData
+from .evaluate import RecData, fit_mask
 from .recording import GROUPS
 
 
@@ -210,7 +210,9 @@ def residual_map(rd: RecData, model_p: dict) -> ResidualMap:
             r = np.abs(np.sqrt(np.clip(pm, 0, None)) - np.sqrt(pmod)) / np.sqrt(pmod)
             s = (pm - pmod) / np.maximum(pn, 1e-300)
         f = (r > np.maximum(0.3, 3.0 / np.sqrt(dof))[None, :]) & (np.abs(s) > 3.0)
-        f &= rd.masks[n][None, :] & np.isfinite(pm)
+        # only bands the fit trusts: a gap channel judged through its magnet's transmissibility
+        # (its band amplitudes follow the reconstructed rail, not the twin's physics) flags nothing
+        f &= fit_mask(rd, n)[None, :] & np.isfinite(pm)
         sev[n], flags[n], rel[n] = np.nan_to_num(s), f, np.nan_to_num(r)
     return ResidualMap(rd, sev, flags, rel, floor)
 

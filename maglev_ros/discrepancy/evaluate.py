@@ -283,37 +283,38 @@ def fit_mask(rd: RecData, name: str) -> np.ndarray:
     return m
 
 
-def _fit_items(spec: ModelSpec, rd: RecData, only=None) -> list[tuple[np.ndarray, np.ndarray, float]]:
+def _fit_items(spec: ModelSpec, rd: RecData, only=None,
+               mp: dict | None = None) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """(measured, modelled, scale) of every fitted channel/feature of one recording: band
     amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
     and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's whole
     amplitude over those frames).
-    ``only``: a set of channel names; then only those channels and the features built from them."""
-    mp = model_powers(spec, rd)
+    ``only``: a set of channel names; then only those channels and the features built from them.
+    ``mp``: the model band powers when the caller has them."""
+    mp = model_powers(spec, rd) if mp is None else mp
     ms = model_transmissibility(spec, rd) if rd.sens else {}
     out = []
 
-    def add(am, at):
-        ok = np.isfinite(am) & np.isfinite(at)
-        return am[ok], at[ok]
     def use(*names):
         return only is None or bool(set(names) & only)
+
+    def add(am, at, den=None):
+        ok = np.isfinite(am) & np.isfinite(at)
+        am, at = am[ok], at[ok]
+        out.append((am, at, den if den is not None else (float(np.sqrt(np.sum(am ** 2))) or 1.0)))
+
+    def amp(meas, mod, m):          # band powers -> amplitudes over the bands m
+        add(np.sqrt(np.clip(meas[:, m], 0, None)), np.sqrt(np.clip(mod[:, m], 0, None)))
     for n in rd.rec.channels:
         m = fit_mask(rd, n)
         if m.any() and use(n):
-            am, at = add(np.sqrt(np.clip(rd.pm[n][:, m], 0, None)), np.sqrt(np.clip(mp[n][:, m], 0, None)))
-            out.append((am, at, float(np.sqrt(np.sum(am ** 2))) or 1.0))
+            amp(rd.pm[n], mp[n], m)
     for k in rd.sens:
-        if not use(*rd.sens_pairs[k]):
-            continue
-        m = rd.sens_masks[k]
-        am, at = add(np.sqrt(np.clip(rd.sens[k][:, m], 0, None)), np.sqrt(np.clip(ms[k][:, m], 0, None)))
-        out.append((am, at, float(np.sqrt(np.sum(am ** 2))) or 1.0))
+        if use(*rd.sens_pairs[k]):
+            amp(rd.sens[k], ms[k], rd.sens_masks[k])
     for g in rd.level:
-        if not use(g):
-            continue
-        am, at = add(rd.level[g], ms[g])
-        out.append((am, at, rd.level_den[g]))
+        if use(g):
+            add(rd.level[g], ms[g], rd.level_den[g])
     return out
 
 
@@ -343,7 +344,7 @@ def fit_report(spec: ModelSpec, rds: list[RecData], channels=None) -> tuple[floa
         mp = model_powers(spec, rd)
         for n in rd.rec.channels:
             per.setdefault(n, []).append(nrmse_amplitude(rd.pm[n], mp[n], rd.masks[n][None, :]))
-        items = _fit_items(spec, rd, only) if only else []
-        allv += [float(np.sqrt(np.sum((am - at) ** 2))) / den for am, at, den in (items or _fit_items(spec, rd))]
+        items = (_fit_items(spec, rd, only, mp) if only else []) or _fit_items(spec, rd, mp=mp)
+        allv += [float(np.sqrt(np.sum((am - at) ** 2))) / den for am, at, den in items]
     pc = {n: float(np.mean(v)) for n, v in per.items()}
     return float(np.sqrt(np.mean(np.square(allv)))) if allv else 0.0, pc

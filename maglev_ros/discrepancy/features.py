@@ -58,27 +58,32 @@ def usable_bands(grid: FrameGrid, fs_hz: float, nyquist_fraction: float = 0.7) -
     return grid.edges_hz[1:] <= nyquist_fraction * fs_hz / 2 + 1e-9
 
 
-def band_powers(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -> np.ndarray:
-    """(n_frames, n_bands) band powers of signal x (NaN for frames outside the signal)."""
+def _frames(t_s: np.ndarray, size: int, fs_hz: float, grid: FrameGrid):
+    """Hann frames of the grid on a signal of ``size`` samples stamped ``t_s``: window, frequencies,
+    mask of frames inside the signal and their sample indices (n_ok, n)."""
     n = int(round(grid.frame_s * fs_hz))
-    w = np.hanning(n)
-    norm = 1.0 / (np.sum(w ** 2) * fs_hz)
-    f = np.fft.rfftfreq(n, 1.0 / fs_hz)
-    W = band_weights(grid, f)                       # (n_bands, n_freq)
     starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
-    out = np.full((grid.n_frames, grid.n_bands), np.nan)
-    valid = (starts + n <= x.size) & (starts >= 0)
-    if not valid.any():
-        return out
-    idx = starts[valid][:, None] + np.arange(n)[None, :]
-    seg = x[idx]
-    X = np.fft.rfft(seg * w[None, :], axis=1)
-    p = np.abs(X) ** 2 * norm
+    ok = (starts >= 0) & (starts + n <= size)
+    idx = starts[ok][:, None] + np.arange(n)[None, :]
+    return np.hanning(n), np.fft.rfftfreq(n, 1.0 / fs_hz), ok, idx
+
+
+def _band_power(X: np.ndarray, w: np.ndarray, fs_hz: float, W: np.ndarray) -> np.ndarray:
+    """Band powers (rows of X, n_bands) of the one-sided periodogram of Hann-windowed frames X."""
+    n = w.size
+    p = np.abs(X) ** 2 / (np.sum(w ** 2) * fs_hz)
     p[:, 1:] *= 2.0
     if n % 2 == 0:
         p[:, -1] /= 2.0
-    df = fs_hz / n
-    out[valid] = (p @ W.T) * df
+    return (p @ W.T) * (fs_hz / n)
+
+
+def band_powers(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -> np.ndarray:
+    """(n_frames, n_bands) band powers of signal x (NaN for frames outside the signal)."""
+    w, f, ok, idx = _frames(t_s, x.size, fs_hz, grid)
+    out = np.full((grid.n_frames, grid.n_bands), np.nan)
+    if ok.any():
+        out[ok] = _band_power(np.fft.rfft(x[idx] * w[None, :], axis=1), w, fs_hz, band_weights(grid, f))
     return out
 
 
@@ -151,17 +156,12 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     Anti-alias filters and acquisition delays common to both channels cancel too. Bands below
     ``S_MIN_HZ`` and frames outside the signal are NaN. ``with_rail_power``: also return the band
     powers of the rail y (same shape)."""
-    n = int(round(grid.frame_s * fs_hz))
-    w = np.hanning(n)
-    f = np.fft.rfftfreq(n, 1.0 / fs_hz)
+    w, f, ok, idx = _frames(t_s, min(accel_mps2.size, gap_m.size), fs_hz, grid)
     W = band_weights(grid, f)
-    starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
     out = np.full((grid.n_frames, grid.n_bands), np.nan)
     rail = out.copy()
-    ok = (starts >= 0) & (starts + n <= accel_mps2.size) & (starts + n <= gap_m.size)
     if not ok.any():
         return (out, rail) if with_rail_power else out
-    idx = starts[ok][:, None] + np.arange(n)[None, :]
     g = gap_m[idx]
     A = np.fft.rfft(accel_mps2[idx] * w, axis=1)
     G = np.fft.rfft((g - g.mean(axis=1, keepdims=True)) * w, axis=1)
@@ -169,10 +169,8 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     inv = np.zeros_like(f)
     inv[keep] = -1.0 / (2 * np.pi * f[keep]) ** 2
     Y = A * inv[None, :] + G
-    scale = np.full(f.size, 2.0 / (np.sum(w ** 2) * fs_hz) * (fs_hz / n))     # one-sided band power, as band_powers
-    scale[0] /= 2.0
-    pg = (np.abs(G * keep[None, :]) ** 2 * scale) @ W.T
-    py = (np.abs(Y) ** 2 * scale) @ W.T
+    pg = _band_power(G * keep[None, :], w, fs_hz, W)
+    py = _band_power(Y, w, fs_hz, W)
     with np.errstate(invalid="ignore", divide="ignore"):
         r = np.where(py > 0, pg / py, np.nan)
     r[:, W[:, ~keep].sum(axis=1) > 0.5 * W.sum(axis=1)] = np.nan     # bands mostly below S_MIN_HZ
@@ -183,13 +181,8 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
 
 def frame_means(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -> np.ndarray:
     """(n_frames,) Hann-weighted mean of x in each frame (NaN outside the signal)."""
-    n = int(round(grid.frame_s * fs_hz))
-    w = np.hanning(n)
-    starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
+    w, _, ok, idx = _frames(t_s, x.size, fs_hz, grid)
     out = np.full(grid.n_frames, np.nan)
-    ok = (starts >= 0) & (starts + n <= x.size)
     if ok.any():
-        idx = starts[ok][:, None] + np.arange(n)[None, :]
         out[ok] = (x[idx] @ w) / w.sum()
     return out
-

@@ -17,7 +17,7 @@ from maglev_ros.errors import ContractError
 
 __all__ = [
     "CONTRACT_SCHEMA", "TOPIC_METADATA", "TOPIC_GUIDEWAY_ACCEL", "TOPIC_GUIDEWAY_DISP",
-    "TOPIC_VEHICLE_ACCEL", "TOPIC_VEHICLE_GAP", "TOPIC_VEHICLE_POSITION", "DATA_TOPICS",
+    "TOPIC_VEHICLE_ACCEL", "TOPIC_VEHICLE_GAP", "TOPIC_VEHICLE_POSITION", "TOPIC_BODY_ACCEL", "DATA_TOPICS",
     "SENSORBLOCK_TYPE", "STRING_TYPE", "SI_UNITS", "NON_SI_UNITS", "TOPIC_UNITS",
     "Span", "Sensor", "Metadata", "Issue", "parse_metadata", "metadata_from_dict", "metadata_issues",
     "unit_conversion", "is_si_unit", "check_units",
@@ -31,8 +31,11 @@ TOPIC_GUIDEWAY_DISP = "/testline/guideway/displacement"
 TOPIC_VEHICLE_ACCEL = "/testline/vehicle/accel"
 TOPIC_VEHICLE_GAP = "/testline/vehicle/gap"
 TOPIC_VEHICLE_POSITION = "/testline/vehicle/position"
+#: optional extension (docs/contract-extensions.md): car-body vertical accelerations, each sensor
+#: entry with ``body_x_m`` (x of the point relative to the vehicle reference point)
+TOPIC_BODY_ACCEL = "/testline/vehicle/body_accel"
 DATA_TOPICS = (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
-               TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION)
+               TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, TOPIC_BODY_ACCEL)
 
 SENSORBLOCK_TYPE = "maglev_msgs/msg/SensorBlock"
 STRING_TYPE = "std_msgs/msg/String"
@@ -78,6 +81,7 @@ TOPIC_UNITS: dict[str, str] = {
     TOPIC_GUIDEWAY_DISP: "m",
     TOPIC_VEHICLE_ACCEL: "m/s^2",
     TOPIC_VEHICLE_GAP: "m",
+    TOPIC_BODY_ACCEL: "m/s^2",
 }
 POSITION_CHANNEL_UNITS = {"position_m": "m", "speed_mps": "m/s"}
 
@@ -298,6 +302,10 @@ def metadata_from_dict(doc: Any, source: str) -> Metadata:
         mag = s.get("magnet")
         if mag is not None and (not isinstance(mag, int) or isinstance(mag, bool) or mag < 1):
             raise fail(f"{p}.magnet", f"expected a 1-based magnet number, got {mag!r}")
+        if topic == TOPIC_BODY_ACCEL and not _is_number(s.get("body_x_m")):
+            raise fail(f"{p}.body_x_m", "expected the x of the car-body point relative to the vehicle "
+                       f"reference point [m] (a finite number) for a sensor on {TOPIC_BODY_ACCEL}, "
+                       f"got {s.get('body_x_m')!r}")
 
     run = need(doc, "run", "run.kind")
     if not isinstance(run, dict):

@@ -33,8 +33,8 @@ import numpy as np
 from scipy import signal
 from scipy.linalg import eigh
 
-from maglev_ros.discrepancy.model import flexible_vehicle
-from maglev_ros.discrepancy.recording import Recording, recording_from_arrays
+from maglev_ros.discrepancy.model import body_point_row, flexible_vehicle
+from maglev_ros.discrepancy.recording import TOPIC_GROUP, Recording, recording_from_arrays
 from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, line_spans, twin_config, with_levitation
 from maglev_ros.twin.guideway import Guideway, ModalBasis, SpanFE, beam_element
@@ -68,7 +68,7 @@ class Case:
         return CATEGORY.get(self.effect) if self.effect else None
 
 
-def metadata(design: dict, kind: str, speed: float, n_spans: int = N_SPANS) -> dict:
+def metadata(design: dict, kind: str, speed: float, n_spans: int = N_SPANS, body_sensors: bool = True) -> dict:
     spans = [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(n_spans)]
     sensors = {}
     for i in range(n_spans):
@@ -82,12 +82,19 @@ def metadata(design: dict, kind: str, speed: float, n_spans: int = N_SPANS) -> d
     sensors[f"G{j + 1}D"] = {"topic": "/testline/guideway/displacement", "quantity": "displacement",
                              "direction": "vertical", "span": f"S{j + 1}", "position_m": (j + 0.5) * L_SPAN,
                              "side": "center"}
+    cfg = twin_config()
     if kind == "pass":
         for k in (1, 8):
             sensors[f"M{k}A"] = {"topic": "/testline/vehicle/accel", "quantity": "acceleration",
                                  "direction": "vertical", "magnet": k}
             sensors[f"M{k}G"] = {"topic": "/testline/vehicle/gap", "quantity": "gap", "magnet": k}
-    cfg = twin_config()
+        if body_sensors:
+            # car-body floor accelerometers (optional topic, docs/contract-extensions.md): over the
+            # front air spring and at the body's centre
+            xs = cfg.vehicle.secondary_x_m
+            for name, x in (("B1A", max(xs)), ("B2A", cfg.vehicle.car_body.x_m)):
+                sensors[name] = {"topic": "/testline/vehicle/body_accel", "quantity": "acceleration",
+                                 "direction": "vertical", "body_x_m": float(x)}
     return {"schema": "maglev-testline/1", "description": "concealed-effect case",
             "line": {"spans": spans}, "sensors": sensors,
             "vehicle": {"magnet_offsets_m": list(cfg.vehicle.magnet_offsets_m), "nominal_gap_m": 0.010},
@@ -276,7 +283,8 @@ def _apply_sensor_fault(sig: dict, name: str, tp: dict, t: np.ndarray, ref: floa
         sig[name] = y
 
 
-NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 0.004, "gap": 1.0e-6}
+NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 0.004, "gap": 1.0e-6,
+             "body_accel": 0.002}
 
 
 def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, speeds=(22.0, 30.0),
@@ -344,6 +352,8 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
                 sig_hi[k] = res.guideway_disp_m[:, res.sensor(k)].copy()
             elif s["topic"].endswith("vehicle/accel"):
                 sig_hi[k] = res.magnet_accel_mps2[:, s["magnet"] - 1].copy()
+            elif s["topic"].endswith("body_accel"):
+                sig_hi[k] = res.vehicle_acc_mps2 @ body_point_row(st.vehicle.model, s["body_x_m"])
             else:
                 sig_hi[k] = res.magnet_gap_m[:, s["magnet"] - 1].copy()
         if effect == "ambient_excitation":
@@ -356,8 +366,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         sig = {}
         for k, y in sig_hi.items():
             grp = md["sensors"][k]["topic"]
-            gname = ("guideway_accel" if grp.endswith("guideway/accel") else "guideway_disp" if grp.endswith("displacement")
-                     else "vehicle_accel" if grp.endswith("vehicle/accel") else "gap")
+            gname = TOPIC_GROUP[grp]
             y = _aa_decimate(y, variant)
             sig[k] = y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour)
         if effect == "sensor_error":

@@ -113,6 +113,8 @@ def test_missing_required_key_names_bag_and_key(path):
     (lambda d: d["vehicle"].update(magnet_offsets_m=[]), "vehicle.magnet_offsets_m", "non-empty"),
     (lambda d: d["sensors"].update(X={"topic": "no-slash"}), "sensors.X.topic", "topic name"),
     (lambda d: d.update(design=[1]), "design", "object"),
+    (lambda d: d["sensors"].update(B1A={"topic": C.TOPIC_BODY_ACCEL, "quantity": "acceleration"}),
+     "sensors.B1A.body_x_m", "car-body point"),
 ])
 def test_bad_values_name_key_and_expectation(mutate, key, expect):
     doc = copy.deepcopy(_contract_example())

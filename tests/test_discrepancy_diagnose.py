@@ -42,6 +42,17 @@ def test_structural_effect_is_named_and_placed(effect, params, span):
     assert ev["heldout_nrmse_after"] < 0.7 * ev["heldout_nrmse_before"] and ev["delta_bic"] < -10
 
 
+def test_car_body_bending_is_named_from_the_car_body_accelerometers():
+    case = make_case("cb", "carbody_flexibility", {"bend_hz": 7.5}, seed=41, speeds=(24.0, 30.0), variant=FAST,
+                     n_spans=2)
+    rep = diagnose(case.passes, case.ambient).to_dict()
+    top = rep["missing_physics"][0]
+    assert top["effect"] == "carbody_flexibility" and top["category"] == "vehicle_structure"
+    assert top["parameters"]["bending_frequency_hz"] == pytest.approx(7.5, rel=0.08)
+    ev = top["evidence"]
+    assert ev["heldout_nrmse_after"] < 0.9 * ev["heldout_nrmse_before"] and ev["delta_bic"] < -10
+
+
 # ---------------------------------------------------------------------------------------------
 def _blocks(x, fs=500.0, block_n=50, name="G1A"):
     for a in range(0, x.size, block_n):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.linalg import eigh
 
-from maglev_ros.discrepancy.model import (ModelSpec, _free_free_shape, base_spec,
+from maglev_ros.discrepancy.model import (ModelSpec, _free_free_shape, base_spec, body_point_row,
                                           flexible_vehicle)
 from maglev_ros.twin.design import GuidewayProps, SpanSpec, twin_config, with_levitation
 from maglev_ros.twin.guideway import assemble_span
@@ -68,6 +68,24 @@ def test_flexible_car_body_adds_a_mode_near_its_bending_frequency(fb):
     eq0 = static_equilibrium(vehicle_from_design(cfg.vehicle))
     eq1 = static_equilibrium(vm)
     assert np.allclose(eq1.magnet_force_n.sum(), eq0.magnet_force_n.sum())
+
+
+def test_car_body_point_rows_rigid_lever_and_free_free_bending_shape():
+    cfg = twin_config()
+    rigid = vehicle_from_design(cfg.vehicle)
+    xc = cfg.vehicle.car_body.x_m
+    row = body_point_row(rigid, xc + 3.0)
+    assert row[rigid.dof_names.index("car.z")] == 1.0
+    assert row[rigid.dof_names.index("car.pitch")] == pytest.approx(3.0)
+    flex = flexible_vehicle(rigid, 8.0)
+    xs = cfg.vehicle.secondary_x_m
+    mid, half = 0.5 * (max(xs) + min(xs)), 0.65 * (max(xs) - min(xs))
+    k = flex.dof_names.index("car.bend")
+    # first free-free bending mode of a uniform beam: ends 1, centre -0.6078 (tabulated ratio)
+    assert body_point_row(flex, mid + half)[k] == pytest.approx(1.0, abs=1e-6)
+    assert body_point_row(flex, mid - half)[k] == pytest.approx(1.0, abs=1e-6)
+    assert body_point_row(flex, mid)[k] == pytest.approx(-0.6078, abs=2e-4)
+    assert np.array_equal(body_point_row(flex, mid)[:k], body_point_row(rigid, mid))
 
 
 def test_control_lag_keeps_the_levitation_stable_and_moves_the_poles():

@@ -30,9 +30,9 @@ from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_levitation
 from maglev_ros.twin.guideway import assemble_span
 from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
-from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium
+from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
 
-from .recording import Recording
+from .recording import GROUP_UNIT, Recording
 
 CAL_PARAMS = ("E", "kb", "kp", "kv")          # calibrated (log-scale factors)
 CAL_NAMES = {"E": "youngs_modulus_pa", "kb": "bearing_stiffness_n_per_m", "kp": "kp_a_per_m",
@@ -113,16 +113,33 @@ def _free_free_shape(L: float):
     return psi
 
 
+def _carbody_beam(model: VehicleModel):
+    """(x_start, psi) of the car body taken as a uniform free-free beam over the secondary spring
+    positions plus 15 % overhang each end; psi(x - x_start) is its first bending shape."""
+    xs = [c.x_m for c in model.connections if c.body_b == "car" or c.body_a == "car"]
+    span = max(xs) - min(xs)
+    L = 1.3 * span if span > 0 else 25.0
+    return 0.5 * (max(xs) + min(xs)) - L / 2, _free_free_shape(L), L
+
+
+def body_point_row(model: VehicleModel, x_m: float) -> np.ndarray:
+    """Row mapping the vehicle DOFs to the vertical motion of the car-body point at ``x_m``
+    (relative to the vehicle reference point): heave + pitch, plus the bending DOF ``car.bend``
+    of a :func:`flexible_vehicle`."""
+    row = model.point_row("car", x_m)
+    if "car.bend" in model.dof_names:
+        x_start, psi, _ = _carbody_beam(model)
+        row = row.copy()
+        row[model.dof_names.index("car.bend")] = float(psi(x_m - x_start))
+    return row
+
+
 def flexible_vehicle(model: VehicleModel, bend_hz: float, zeta: float = 0.02) -> VehicleModel:
     """Add the first free-free bending mode of the car body (uniform beam over the secondary
     spring positions plus 15 % overhang each end) as DOF ``car.bend``, shape 1 at the body ends,
     generalised mass from the uniform mass distribution (= m/4)."""
     car = next(b for b in model.bodies if b.name == "car")
-    xs = [c.x_m for c in model.connections if c.body_b == "car" or c.body_a == "car"]
-    span = max(xs) - min(xs)
-    L = 1.3 * span if span > 0 else 25.0
-    x_start = 0.5 * (max(xs) + min(xs)) - L / 2
-    psi = _free_free_shape(L)
+    x_start, psi, L = _carbody_beam(model)
     grid = np.linspace(0, L, 401)
     mb = car.mass_kg * float(np.trapezoid(psi(grid) ** 2, grid)) / L
     wb = 2 * math.pi * bend_hz
@@ -253,6 +270,12 @@ def reference_value(rec: Recording, name: str) -> float:
     return 0.0
 
 
+def _vehicle_model(spec: ModelSpec) -> VehicleModel:
+    """The vehicle model the spec's twin runs (rigid, or with the car-body bending DOF)."""
+    vm = vehicle_from_design(spec.config.vehicle)
+    return vm if spec.carbody_bend_hz is None else flexible_vehicle(vm, spec.carbody_bend_hz, spec.carbody_zeta)
+
+
 def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> dict[str, np.ndarray]:
     """Predicted time series of every channel of ``rec`` (on its time stamps), with sensor errors."""
     res = simulate(spec, rec, fs_out_hz)
@@ -268,6 +291,8 @@ def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> 
                 src = res.guideway_disp_m[:, res.sensor(name)]
             elif ch.group == "vehicle_accel":
                 src = res.magnet_accel_mps2[:, ch.magnet - 1]
+            elif ch.group == "body_accel":
+                src = res.vehicle_acc_mps2 @ body_point_row(_vehicle_model(spec), ch.body_x_m)
             else:
                 src = res.magnet_gap_m[:, ch.magnet - 1]
             y = np.interp(ch.time_s, res.time_s, src)
@@ -283,6 +308,3 @@ def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> 
             sel = (t >= t0) & (t <= t1)
             out[name] = np.where(sel, val, out[name])
     return out
-
-
-GROUP_UNIT_OF = {"guideway_accel": "m/s^2", "guideway_disp": "m", "vehicle_accel": "m/s^2", "gap": "m"}

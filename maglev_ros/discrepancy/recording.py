@@ -1,7 +1,9 @@
 """Recordings as the discrepancy core sees them: channels grouped, vehicle position, metadata.
 
 ``Recording`` is built from a contract bag (:func:`load_recording`) or in memory (tests, the
-online node). Channel groups: ``guideway_accel``, ``guideway_disp``, ``vehicle_accel``, ``gap``.
+online node). Channel groups: ``guideway_accel``, ``guideway_disp``, ``vehicle_accel``, ``gap``
+and, where the recording has the optional car-body topic (docs/contract-extensions.md),
+``body_accel``.
 """
 from __future__ import annotations
 
@@ -12,14 +14,16 @@ import numpy as np
 
 from maglev_ros.errors import ContractError, UserError
 
-GROUPS = ("guideway_accel", "guideway_disp", "vehicle_accel", "gap")
+GROUPS = ("guideway_accel", "guideway_disp", "vehicle_accel", "gap", "body_accel")
 TOPIC_GROUP = {
     "/testline/guideway/accel": "guideway_accel",
     "/testline/guideway/displacement": "guideway_disp",
     "/testline/vehicle/accel": "vehicle_accel",
     "/testline/vehicle/gap": "gap",
+    "/testline/vehicle/body_accel": "body_accel",
 }
-GROUP_UNIT = {"guideway_accel": "m/s^2", "guideway_disp": "m", "vehicle_accel": "m/s^2", "gap": "m"}
+GROUP_UNIT = {"guideway_accel": "m/s^2", "guideway_disp": "m", "vehicle_accel": "m/s^2", "gap": "m",
+              "body_accel": "m/s^2"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,10 +36,11 @@ class Channel:
     sample_rate_hz: float
     position_m: float | None = None      # guideway sensors
     magnet: int | None = None            # vehicle sensors (1-based)
+    body_x_m: float | None = None        # car-body sensors: x relative to the vehicle reference point
 
     @property
     def on_vehicle(self) -> bool:
-        return self.group in ("vehicle_accel", "gap")
+        return self.group in ("vehicle_accel", "gap", "body_accel")
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,7 +97,8 @@ def recording_from_arrays(metadata: Mapping, signals: Mapping[str, tuple[np.ndar
         rate = float(1.0 / np.median(np.diff(t))) if t.size > 1 else 0.0
         chans[name] = Channel(name, group, t, v, rate,
                               None if s.get("position_m") is None else float(s["position_m"]),
-                              None if s.get("magnet") is None else int(s["magnet"]))
+                              None if s.get("magnet") is None else int(s["magnet"]),
+                              None if s.get("body_x_m") is None else float(s["body_x_m"]))
     if not chans:
         raise ContractError(f"{source}: no guideway/vehicle SensorBlock channels found")
     kind = str((metadata.get("run") or {}).get("kind", "pass"))

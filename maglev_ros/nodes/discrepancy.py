@@ -1,9 +1,16 @@
 """Node ``discrepancy``: watches the twin's residual stream and publishes mismatch reports.
 
-Subscribes every /maglev/twin/residual/<group> (SensorBlock; topics discovered from the graph)
-and /testline/vehicle/position; publishes maglev_msgs/MismatchReport on /maglev/mismatch when
-``discrepancy.online.OnlineDetector`` closes a mismatch. Thin adapter: the logic is in the core.
-Parameters: ``threshold`` (10, residual power / noise floor), ``frame_s`` (0.5), ``hop_s`` (0.25).
+Subscribes every /maglev/twin/residual/<group> (SensorBlock; topics discovered from the graph),
+/testline/vehicle/position and the measured streams ``measured_topics`` (for the relative
+allowance; channels matched by name); publishes maglev_msgs/MismatchReport on /maglev/mismatch
+when ``discrepancy.online.OnlineDetector`` closes an incident (one report per incident: all its
+channels, its time/position span, the union band; per-channel bands in ``detail_json``), and
+flushes the open incident when the node shuts down. Thin adapter: the logic is in the core.
+Parameters (see the core's docstring): ``threshold`` (10, residual power / noise floor),
+``frame_s`` (0.5), ``hop_s`` (0.25), ``min_frames`` (2), ``max_s`` (5, longest incident),
+``merge_gap_s`` (1, runs closer than this are one incident), ``allowance_factor`` (4, x the learned
+peak residual of earlier passes), ``learn_rate`` (0.1), ``learn_rate_reported`` (1),
+``rel_allowance`` (0.1, tolerated residual / measured amplitude; 0 = off), ``measured_topics``.
 """
 from __future__ import annotations
 
@@ -17,18 +24,30 @@ from maglev_ros.nodes._common import QOS_STREAM, block_from_msg, run_node, stamp
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
+# the measured streams the twin's residual groups are computed from (maglev_ros.contract names)
+MEASURED_TOPICS = ("/testline/guideway/accel", "/testline/guideway/displacement",
+                   "/testline/vehicle/accel", "/testline/vehicle/gap")
 
 
 class DiscrepancyNode(Node):
     def __init__(self) -> None:
         super().__init__("discrepancy")
+        def num(name, default):
+            return float(self.declare_parameter(name, default).value)
         self.detector = OnlineDetector(
-            frame_s=float(self.declare_parameter("frame_s", 0.5).value),
-            hop_s=float(self.declare_parameter("hop_s", 0.25).value),
-            threshold=float(self.declare_parameter("threshold", 10.0).value))
+            frame_s=num("frame_s", 0.5), hop_s=num("hop_s", 0.25), threshold=num("threshold", 10.0),
+            min_frames=int(self.declare_parameter("min_frames", 2).value), max_s=num("max_s", 5.0),
+            merge_gap_s=num("merge_gap_s", 1.0), allowance_factor=num("allowance_factor", 4.0),
+            learn_rate=num("learn_rate", 0.1), learn_rate_reported=num("learn_rate_reported", 1.0),
+            rel_allowance=num("rel_allowance", 0.1))
+        measured = list(self.declare_parameter("measured_topics", list(MEASURED_TOPICS)).value or [])
         self.pub = self.create_publisher(MismatchReport, TOPIC_MISMATCH, QOS_STREAM)
         self.subs = {}
         self.create_subscription(SensorBlock, "/testline/vehicle/position", self._on_position, QOS_STREAM)
+        if self.detector.rel_allowance > 0:
+            for topic in measured:
+                if topic:
+                    self.create_subscription(SensorBlock, topic, self._on_measured, QOS_STREAM)
         self.create_timer(0.5, self._discover)
         self._discover()
 
@@ -42,19 +61,34 @@ class DiscrepancyNode(Node):
         if "position_m" in b.channels:
             self.detector.add_position(b.times_s(), b.data[:, b.channels.index("position_m")])
 
+    def _on_measured(self, msg) -> None:
+        self.detector.add_measured_block(block_from_msg(msg))
+
     def _on_residual(self, msg) -> None:
         for ev in self.detector.add_block(block_from_msg(msg)):
-            out = MismatchReport()
-            stamp_to_msg(int(ev.t1_s * 1e9), out.header)
-            out.header.frame_id = "testline"
-            out.channels = list(ev.channels)
-            out.t0_s, out.t1_s = float(ev.t0_s), float(ev.t1_s)
-            out.position_start_m, out.position_end_m = float(ev.position_start_m), float(ev.position_end_m)
-            out.f0_hz, out.f1_hz = float(ev.f0_hz), float(ev.f1_hz)
-            out.severity = float(ev.severity)
-            out.effect, out.category, out.explanation = ev.effect, ev.category, ev.explanation
-            out.detail_json = ev.detail_json
-            self.pub.publish(out)
+            self._publish(ev)
+
+    def _publish(self, ev) -> None:
+        out = MismatchReport()
+        stamp_to_msg(int(ev.t1_s * 1e9), out.header)
+        out.header.frame_id = "testline"
+        out.channels = list(ev.channels)
+        out.t0_s, out.t1_s = float(ev.t0_s), float(ev.t1_s)
+        out.position_start_m, out.position_end_m = float(ev.position_start_m), float(ev.position_end_m)
+        out.f0_hz, out.f1_hz = float(ev.f0_hz), float(ev.f1_hz)
+        out.severity = float(ev.severity)
+        out.effect, out.category, out.explanation = ev.effect, ev.category, ev.explanation
+        out.detail_json = ev.detail_json
+        self.pub.publish(out)
+
+    def destroy_node(self):
+        """Shutdown: publish the incident still open (end of stream) before going away."""
+        try:
+            for ev in self.detector.flush():
+                self._publish(ev)
+        except Exception as exc:  # never block the shutdown
+            self.get_logger().warning(f"flush on shutdown failed: {exc}")
+        return super().destroy_node()
 
 
 def main(args=None) -> int:

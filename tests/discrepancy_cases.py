@@ -268,6 +268,24 @@ def _ambient_response(rng, modal: ModalBasis, spans, sensors_x, n: int, dt: floa
     return disp * scale, acc * scale
 
 
+def truth_signals(res: PassResult, sensors: dict, vehicle_model) -> dict:
+    """Each recorded channel's noise-free signal from a truth run (sensor entries of the metadata)."""
+    out = {}
+    for k, s in sensors.items():
+        group = TOPIC_GROUP[s["topic"]]
+        if group == "guideway_accel":
+            out[k] = res.guideway_accel_mps2[:, res.sensor(k)].copy()
+        elif group == "guideway_disp":
+            out[k] = res.guideway_disp_m[:, res.sensor(k)].copy()
+        elif group == "vehicle_accel":
+            out[k] = res.magnet_accel_mps2[:, s["magnet"] - 1].copy()
+        elif group == "gap":
+            out[k] = res.magnet_gap_m[:, s["magnet"] - 1].copy()
+        else:
+            out[k] = res.vehicle_acc_mps2 @ body_point_row(vehicle_model, s["body_x_m"])
+    return out
+
+
 def _apply_sensor_fault(sig: dict, name: str, tp: dict, t: np.ndarray, ref: float) -> None:
     y = sig[name]
     kind = tp["kind"]
@@ -344,18 +362,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         if not np.all(np.abs(res.magnet_gap_m - 0.010) < 0.008):
             raise RuntimeError(f"{case_id}: truth vehicle lost levitation at {v} m/s ({effect}, {tp})")
         t_hi = res.time_s
-        sig_hi = {}
-        for k, s in md["sensors"].items():
-            if s["topic"].endswith("guideway/accel"):
-                sig_hi[k] = res.guideway_accel_mps2[:, res.sensor(k)].copy()
-            elif s["topic"].endswith("displacement"):
-                sig_hi[k] = res.guideway_disp_m[:, res.sensor(k)].copy()
-            elif s["topic"].endswith("vehicle/accel"):
-                sig_hi[k] = res.magnet_accel_mps2[:, s["magnet"] - 1].copy()
-            elif s["topic"].endswith("body_accel"):
-                sig_hi[k] = res.vehicle_acc_mps2 @ body_point_row(st.vehicle.model, s["body_x_m"])
-            else:
-                sig_hi[k] = res.magnet_gap_m[:, s["magnet"] - 1].copy()
+        sig_hi = truth_signals(res, md["sensors"], st.vehicle.model)
         if effect == "ambient_excitation":
             names = [k for k in md["sensors"] if md["sensors"][k]["topic"].startswith("/testline/guideway")]
             d, a = _ambient_response(rng, st.modal, spans, [gsens[k] for k in names], t_hi.size, 1e-3,
@@ -365,8 +372,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         t = t_hi[1::2]
         sig = {}
         for k, y in sig_hi.items():
-            grp = md["sensors"][k]["topic"]
-            gname = TOPIC_GROUP[grp]
+            gname = TOPIC_GROUP[md["sensors"][k]["topic"]]
             y = _aa_decimate(y, variant)
             sig[k] = y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour)
         if effect == "sensor_error":
@@ -455,6 +461,16 @@ def case_specs(split: str = "tune") -> list[dict]:
                                   "mass_ratio": 0.03, "magnitude": fa})
     for hr in ((1.2, 1.4, 1.7) if split == "tune" else (1.25, 1.5, 1.8)):
         add("magnet_nonlinearity", {"headroom": hr, "magnitude": 1.0 / hr})
+    # second batch (session 4: >= 40 cases per split; appended so earlier cases keep their seeds)
+    for k in range(4):
+        add(None, {"magnitude": 0.0})
+    add("carbody_flexibility", {"bend_hz": 12.0, "magnitude": 12.0})
+    add("control_delay", {"lag_s": 0.006, "magnitude": 0.006})
+    i, e = (1, 1) if split == "tune" else (0, 0)
+    add("bearing_stiffness", {"span_index": i, "end": e, "factor": 0.3, "magnitude": 0.7})
+    add("sensor_error", {"channel": "G2D", "kind": "drift", "value": 1e-5, "magnitude": 1e-5})
+    add("girder_attachment", {"span_index": 2 if split == "tune" else 0, "x_rel_m": 0.65 * L_SPAN,
+                              "freq_hz": 70.0, "mass_ratio": 0.03, "magnitude": 70.0})
     return specs
 
 

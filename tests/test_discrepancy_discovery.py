@@ -55,7 +55,8 @@ def test_attached_resonator_splits_the_mode_like_a_two_dof_system(mu, detune):
 def _truth_pass(speed, attach, seed, n_el=24):
     """A pass over 2 spans from a truth twin (finer mesh, smaller step) with the generator's
     attachment (or none), 1 kHz decimated to 500 Hz, white sensor noise."""
-    from discrepancy_cases import NOISE_STD, _attachment_modes
+    from discrepancy_cases import NOISE_STD, _attachment_modes, truth_signals
+    from maglev_ros.discrepancy.recording import TOPIC_GROUP
     from maglev_ros.twin.coupling import TwinStepper
     from maglev_ros.twin.design import line_spans, twin_config
     rng = np.random.default_rng(seed)
@@ -81,17 +82,9 @@ def _truth_pass(speed, attach, seed, n_el=24):
     res = st.advance(dur, speed)
     t = res.time_s[1::2]
     sig = {}
-    for k, s in md["sensors"].items():
-        if s["topic"].endswith("guideway/accel"):
-            y, grp = res.guideway_accel_mps2[:, res.sensor(k)], "guideway_accel"
-        elif s["topic"].endswith("displacement"):
-            y, grp = res.guideway_disp_m[:, res.sensor(k)], "guideway_disp"
-        elif s["topic"].endswith("vehicle/accel"):
-            y, grp = res.magnet_accel_mps2[:, s["magnet"] - 1], "vehicle_accel"
-        else:
-            y, grp = res.magnet_gap_m[:, s["magnet"] - 1], "gap"
+    for k, y in truth_signals(res, md["sensors"], st.vehicle.model).items():
         y = y[1::2]
-        sig[k] = (t, y + NOISE_STD[grp] * rng.standard_normal(y.size))
+        sig[k] = (t, y + NOISE_STD[TOPIC_GROUP[md["sensors"][k]["topic"]]] * rng.standard_normal(y.size))
     pt = t[::5]
     pos = (pt, np.interp(pt, res.time_s, res.position_m), np.interp(pt, res.time_s, res.speed_mps))
     return recording_from_arrays(md, sig, pos, source=f"truth_{speed:g}")

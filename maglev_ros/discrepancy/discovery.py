@@ -29,6 +29,8 @@ import math
 
 import numpy as np
 
+from .localize import strong_cells
+
 
 def _span_of(x, spans):
     if x is None:
@@ -52,7 +54,7 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
         rd = m.rd
         g = rd.grid
         for n, f in m.flags.items():
-            if f.sum() < min_cells:
+            if f.sum() < min_cells and not strong_cells(m, n).any():
                 continue
             ch = rd.rec.channels[n]
             sp = _span_of(ch.position_m, spans) if not ch.on_vehicle else None

@@ -65,6 +65,9 @@ class ResidualMap:
 
 
 QUIET_TWIN_REL = 1e-3     # a frame is quiet when the twin predicts <= this x its busiest frame
+# one flagged cell alone is a region when the measured amplitude is >= 2x the model's and the
+# residual >= 30x the noise floor (a short free decay of an unmodelled resonance: one 0.5 s frame)
+STRONG_REL, STRONG_SEV = 1.0, 30.0
 MIN_QUIET_CELLS = 3
 CLIP_REL_MEDIAN = 4.0
 
@@ -218,24 +221,38 @@ def residual_map(rd: RecData, model_p: dict) -> ResidualMap:
 
 
 def _positions(rd: RecData, t0: float, t1: float, chans: list[str]) -> tuple[float, float] | None:
+    """Stretch of the line a region refers to. Vehicle channels: where the vehicle (all its
+    magnets) was meanwhile. Guideway channels: the spans holding those sensors, narrowed to the
+    part the vehicle covered meanwhile when it was on them (a girder answers its own load; in
+    the free decay after the vehicle left, the sensors' spans)."""
     rec = rd.rec
     spans = (rec.metadata.get("line") or {}).get("spans") or []
     line0 = min((s["start_m"] for s in spans), default=None)
     line1 = max((s["start_m"] + s["length_m"] for s in spans), default=None)
     sens = [rec.channels[c].position_m for c in chans if rec.channels[c].position_m is not None]
+    own = [(s["start_m"], s["start_m"] + s["length_m"]) for s in spans
+           if any(s["start_m"] <= x <= s["start_m"] + s["length_m"] for x in sens)]
+    guideway_only = bool(sens) and all(rec.channels[c].group.startswith("guideway") for c in chans)
     if rec.position_time_s is not None and line0 is not None:
         offs = (rec.metadata.get("vehicle") or {}).get("magnet_offsets_m") or [0.0]
         x = rec.position_at(np.linspace(t0, t1, 20))
-        lo, hi = float(np.min(x) + min(offs)), float(np.max(x) + max(offs))
-        lo, hi = max(lo, line0), min(hi, line1)
-        if lo < hi:
-            if sens and all(rec.channels[c].group.startswith("guideway") for c in chans):
-                # a guideway sensor responds to the vehicle on its own span: keep the overlap
-                return lo, hi
+        lo, hi = max(float(np.min(x) + min(offs)), line0), min(float(np.max(x) + max(offs)), line1)
+        if guideway_only and own:
+            a, b = min(o[0] for o in own), max(o[1] for o in own)
+            lo, hi = (max(lo, a), min(hi, b)) if max(lo, a) < min(hi, b) else (a, b)
             return lo, hi
+        if lo < hi:
+            return lo, hi
+    if own:
+        return min(o[0] for o in own), max(o[1] for o in own)
     if sens:
         return float(min(sens)), float(max(sens))
     return None
+
+
+def strong_cells(rmap: ResidualMap, name: str) -> np.ndarray:
+    """Flagged cells of a channel that count on their own (see ``STRONG_REL``)."""
+    return rmap.flags[name] & (rmap.rel[name] >= STRONG_REL) & (np.abs(rmap.severity[name]) >= STRONG_SEV)
 
 
 def mismatches(rmap: ResidualMap, max_regions: int = 12, min_cells: int = 2) -> list[Mismatch]:
@@ -247,12 +264,14 @@ def mismatches(rmap: ResidualMap, max_regions: int = 12, min_cells: int = 2) -> 
         if not names:
             continue
         anyf = np.zeros((g.n_frames, g.n_bands), bool)
+        strong = np.zeros_like(anyf)
         for n in names:
             anyf |= rmap.flags[n]
+            strong |= strong_cells(rmap, n)
         lab, nlab = ndimage.label(anyf)
         for k in range(1, nlab + 1):
             cells = lab == k
-            if cells.sum() < min_cells:
+            if cells.sum() < min_cells and not (strong & cells).any():
                 continue
             fr, bd = np.nonzero(cells)
             chans = [n for n in names if (rmap.flags[n] & cells).any()]

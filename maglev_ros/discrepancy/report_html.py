@@ -15,6 +15,7 @@ import numpy as np
 
 from .evaluate import model_powers
 from .model import predict, reference_value
+from .recording import GROUP_UNIT, GROUPS
 
 
 def _png(fig) -> str:
@@ -36,7 +37,7 @@ def _maps_figure(rmap, title: str):
     rd = rmap.rd
     g = rd.grid
     groups = []
-    for grp in ("guideway_accel", "guideway_disp", "vehicle_accel", "gap"):
+    for grp in GROUPS:
         names = [n for n, c in rd.rec.channels.items() if c.group == grp]
         if names:
             groups.append((grp, names))
@@ -105,7 +106,7 @@ def _series(rd, name, spec_before, spec_after):
     axes[0].plot(ch.time_s, pb - ref, lw=0.8, label="twin before")
     axes[0].plot(ch.time_s, pa - ref, lw=0.8, ls="--", label="twin after")
     axes[0].set_xlabel("time [s]")
-    axes[0].set_ylabel(f"{name} [{'m' if ch.group in ('gap', 'guideway_disp') else 'm/s^2'}]")
+    axes[0].set_ylabel(f"{name} [{GROUP_UNIT[ch.group]}]")
     axes[0].legend(fontsize=7)
     mb, ma = model_powers(spec_before, rd)[name], model_powers(spec_after, rd)[name]
     fc = rd.grid.band_center_hz

@@ -19,14 +19,14 @@ import sys
 from rclpy.node import Node
 
 from maglev_msgs.msg import MismatchReport, SensorBlock
+from maglev_ros.contract import DATA_TOPICS, TOPIC_VEHICLE_POSITION
 from maglev_ros.discrepancy.online import OnlineDetector
 from maglev_ros.nodes._common import QOS_STREAM, block_from_msg, run_node, stamp_to_msg
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
-# the measured streams the twin's residual groups are computed from (maglev_ros.contract names)
-MEASURED_TOPICS = ("/testline/guideway/accel", "/testline/guideway/displacement",
-                   "/testline/vehicle/accel", "/testline/vehicle/gap")
+# the measured streams the twin's residual groups are computed from
+MEASURED_TOPICS = tuple(t for t in DATA_TOPICS if t != TOPIC_VEHICLE_POSITION)
 
 
 class DiscrepancyNode(Node):

@@ -82,7 +82,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
+from maglev_ros.contract import (TOPIC_BODY_ACCEL, TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
                                  TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, Metadata,
                                  metadata_from_dict, unit_conversion)
 from maglev_ros.errors import UserError
@@ -94,7 +94,8 @@ __all__ = ["GROUP_TOPICS", "TOPIC_GROUPS", "PREDICTED_PREFIX", "RESIDUAL_PREFIX"
            "OnlineTwin", "periodic_random_irregularity", "nrmse", "IRREGULARITY_SOURCES"]
 
 GROUP_TOPICS = {"guideway_accel": TOPIC_GUIDEWAY_ACCEL, "guideway_displacement": TOPIC_GUIDEWAY_DISP,
-                "vehicle_accel": TOPIC_VEHICLE_ACCEL, "vehicle_gap": TOPIC_VEHICLE_GAP}
+                "vehicle_accel": TOPIC_VEHICLE_ACCEL, "vehicle_gap": TOPIC_VEHICLE_GAP,
+                "body_accel": TOPIC_BODY_ACCEL}
 TOPIC_GROUPS = {t: g for g, t in GROUP_TOPICS.items()}
 PREDICTED_PREFIX = "/maglev/twin/predicted/"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
@@ -224,6 +225,7 @@ class OnlineTwin:
         # predictable channels
         self.guideway_x: dict[str, float] = {}
         self.magnet_of: dict[str, int] = {}
+        self.body_x: dict[str, float] = {}          # car-body sensors (optional topic): x on the body
         spans = md.spans
         lo = min(s.start_m for s in spans)
         hi = max(s.end_m for s in spans)
@@ -234,14 +236,17 @@ class OnlineTwin:
             elif s.topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP) and s.magnet is not None:
                 if self.kind == "pass" and s.magnet <= len(md.magnet_offsets_m):
                     self.magnet_of[sid] = int(s.magnet)
+            elif s.topic == TOPIC_BODY_ACCEL and self.kind == "pass" and s.raw.get("body_x_m") is not None:
+                self.body_x[sid] = float(s.raw["body_x_m"])
         self._sensor_names = tuple(self.guideway_x)
+        self._body_names = tuple(self.body_x)
         self.config = self._build_config()
         if parameters:
             self.set_parameters(list(parameters), list(parameters.values()))
         # buffers
         self._pending: deque[tuple[str, Block]] = deque()
         self._buf_t: list[np.ndarray] = []
-        self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": [], "ok": []}
+        self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": [], "ba": [], "ok": []}
         self._seen_position = False
         self._seen_vehicle = False
         self._offsets = np.asarray(md.magnet_offsets_m if self.kind == "pass" else (), float)
@@ -430,6 +435,10 @@ class OnlineTwin:
         self._buf["ga"].append(res.guideway_accel_mps2)
         self._buf["ma"].append(res.magnet_accel_mps2)
         self._buf["mg"].append(res.magnet_gap_m)
+        # car body (rigid: heave + pitch at each sensor's x)
+        vm = self.stepper.vehicle.model
+        rows = np.array([vm.point_row("car", self.body_x[n]) for n in self._body_names]).reshape(-1, vm.n_dof)
+        self._buf["ba"].append(res.vehicle_acc_mps2 @ rows.T)
         self._buf["ok"].append(ok.astype(float)[:, None])
 
     def _advance(self, t_end_s: float, speed_mps: float | None) -> None:
@@ -588,6 +597,10 @@ class OnlineTwin:
                 if ch in self.guideway_x:
                     cols.append(j)
                     src.append(("ga" if topic == TOPIC_GUIDEWAY_ACCEL else "gd", self._sensor_names.index(ch)))
+            elif topic == TOPIC_BODY_ACCEL:
+                if ch in self.body_x:
+                    cols.append(j)
+                    src.append(("ba", self._body_names.index(ch)))
             elif ch in self.magnet_of:
                 cols.append(j)
                 src.append(("ma" if topic == TOPIC_VEHICLE_ACCEL else "mg", self.magnet_of[ch] - 1))
@@ -605,7 +618,7 @@ class OnlineTwin:
         chans = tuple(blk.channels[j] for j in cols)
         res = meas - pred
         valid = True
-        if topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP):
+        if topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_BODY_ACCEL):
             ok = np.interp(tb, t, buf["ok"][:, 0]) > 0.999       # nearest output samples all valid
             if not ok.all():
                 res[~ok] = np.nan

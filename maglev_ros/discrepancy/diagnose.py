@@ -332,7 +332,8 @@ class Diagnoser:
             hyps.append(cat.ambient_hypothesis(gw, rms_of))
         for n, ch in rec.channels.items():
             noise = float(np.sqrt(np.sum(rds[0].noise[n][rds[0].masks[n]])))
-            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
+            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s,
+                                              scale_only=ch.group == "body_accel"))
         return hyps
 
     def _dropout_fit(self, base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff):

@@ -189,3 +189,18 @@ def test_stlsq_recovers_a_sparse_law_exactly_without_noise():
     X = rng.standard_normal((500, len(TERM_NAMES)))
     c = np.array([1.0, 0.0, 0.0, -2.0, 0.0, 0.0])
     assert np.allclose(stlsq(X, X @ c, 0.05), c, atol=1e-10)
+
+
+def test_vehicle_finding_is_placed_on_the_span_its_magnets_felt_it_over():
+    from maglev_ros.discrepancy.discovery import _vehicle_place
+    from maglev_ros.twin.design import line_spans, twin_config
+    spans = line_spans({"spans": [{"id": f"S{i + 1}", "start_m": 12.0 * i, "length_m": 12.0} for i in range(3)]},
+                       twin_config())
+    # 80 % of the severity while the magnet was over S2 (12-24 m): placed on S2
+    xs = [(15.0, 4.0), (20.0, 4.0), (5.0, 1.0), (30.0, 1.0), (-8.0, 50.0)]     # -8 m: off the line, ignored
+    sp, pos = _vehicle_place(xs, spans)
+    assert sp.span_id == "S2" and pos is None
+    # spread evenly over the line: no span, the weighted 10-90 % stretch
+    sp, pos = _vehicle_place([(x, 1.0) for x in np.linspace(1, 35, 35)], spans)
+    assert sp is None and pos[0] == pytest.approx(4.0, abs=1.01) and pos[1] == pytest.approx(32.0, abs=1.01)
+    assert _vehicle_place([(-5.0, 1.0)], spans) == (None, None)

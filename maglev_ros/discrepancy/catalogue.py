@@ -191,34 +191,23 @@ def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, fl
                       plausible=plaus, describe=desc)
 
 
-def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float,
-                      scale_only: bool = False) -> Hypothesis:
-    """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second).
-    ``scale_only``: for a channel compared only through features above a few Hz (car-body
-    accelerometers, :mod:`.evaluate`): an offset or drift does not reach them except by the leakage
-    of a ramp through the frame window, which a fit would use to absorb model error (a clean
-    held-out case "found" a 0.37 m/s^2 car-body offset with a -0.06 m/s^2/s drift that way)."""
-    def full(p):
-        return (p[0], 0.0, 0.0) if scale_only else (p[0], p[1], p[2])
-
+def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float) -> Hypothesis:
+    """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second)."""
     def apply(sp, p):
-        ls, o, d = full(p)
-        return sp.with_(sensor_error=((channel, math.exp(float(ls)), float(o), float(d)),))
+        return sp.with_(sensor_error=((channel, math.exp(float(p[0])), float(p[1]), float(p[2])),))
 
     def plaus(p):
-        ls, o, d = full(p)
-        s = math.exp(ls)
-        if abs(ls) < 0.05 and abs(o) < 3 * noise_std and abs(d) * t_span_s < 3 * noise_std:
+        s, o, d = math.exp(p[0]), p[1], p[2]
+        if abs(p[0]) < 0.05 and abs(o) < 3 * noise_std and abs(d) * t_span_s < 3 * noise_std:
             return False, "fitted scale/offset/drift are within 5 % / the noise"
         if not 0.2 < s < 5.0:
             return False, f"fitted scale {s:.2f} is not a plausible calibration error"
         return True, ""
 
     def desc(p, sp):
-        ls, o, d = full(p)
-        s = math.exp(ls)
+        s, o, d = math.exp(p[0]), p[1], p[2]
         parts = []
-        if abs(ls) >= 0.05:
+        if abs(p[0]) >= 0.05:
             parts.append(f"reads {s:.2f} times the true value")
         if abs(o) >= 3 * noise_std:
             parts.append(f"has an offset of {o:.3g} {unit}")
@@ -228,11 +217,8 @@ def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float
         return (f"Sensor {channel} {what}; the other sensors agree with the twin, so this is the instrument, "
                 f"not the structure (recalibrate or replace it).",
                 {"channel": channel, "scale": s, "offset": o, "drift_per_s": d})
-    names, lo, hi, x0 = ("ln_scale", "offset", "drift_per_s"), (-2.0, -np.inf, -np.inf), (2.0, np.inf, np.inf), \
-        (0.0, 0.0, 0.0)
-    if scale_only:
-        names, lo, hi, x0 = names[:1], lo[:1], hi[:1], x0[:1]
-    return Hypothesis("sensor_error", f"sensor_error@{channel}", names, lo, hi, x0, apply, needs_sim=False,
+    return Hypothesis("sensor_error", f"sensor_error@{channel}", ("ln_scale", "offset", "drift_per_s"),
+                      (-2.0, -np.inf, -np.inf), (2.0, np.inf, np.inf), (0.0, 0.0, 0.0), apply, needs_sim=False,
                       location={"position_m": None, "span": None, "channels": [channel]},
                       plausible=plaus, describe=desc)
 

@@ -204,13 +204,19 @@ class Diagnoser:
                         chosen.append((hf, v, d))
                         final_spec = combo
         rejected = []
-        if passes and not any(rd.rec.names("body_accel") for rd in rd_all):
+        body = sorted({n for rd in rd_all for n in rd.rec.names("body_accel")})
+        if not body:
             # measured: a 6 or 9 Hz bending mode changes the magnet accelerations by <= 0.2 % and the
             # gap-to-rail transmissibility by <= 1.4 % (the air springs isolate the body)
             rejected.append({"effect": "carbody_flexibility", "why": (
                 "not testable: the recordings have no car-body accelerometer (optional topic "
                 "/testline/vehicle/body_accel); the air springs keep a car-body bending mode out of the "
                 "magnet and gap channels")})
+        else:
+            rejected.append({"effect": "sensor_error", "why": (
+                f"car-body accelerometers {', '.join(body)} not tested for sensor errors: they are compared "
+                "through their ratio to the magnet accelerations above 3 Hz, which carries ~17 % model error "
+                "(a fault of that size cannot be told from it)")})
         for hf, v, d in fits:
             if any(hf is c[0] for c in chosen):
                 continue
@@ -247,7 +253,7 @@ class Diagnoser:
                          for s in base.spec.spans if rd.rec.channels[c].position_m is not None
                          and s.start_m <= rd.rec.channels[c].position_m <= s.end_m}
             disc = discover(maps, guideway_modal(base.spec), base_spec_spans(base.spec), max_findings=12)
-            disc = [d for d in disc if d["location"].get("span") in spans_acc][:1]
+            disc = [d for d in disc if d["location"].get("span") in spans_acc and d.get("sensed_on") != "vehicle"][:1]
             if not disc and len(spans_acc) == 1:
                 # nothing flagged on that span (a scale-like misfit stays under the localization
                 # gates): the accused sensors' whole usable band is the finding to explain
@@ -331,9 +337,13 @@ class Diagnoser:
                         if rd.rec.channels[n].group == "guideway_accel"}
             hyps.append(cat.ambient_hypothesis(gw, rms_of))
         for n, ch in rec.channels.items():
+            if ch.group == "body_accel":
+                # not tested: a car-body channel is compared through its ratio to the magnets above
+                # 3 Hz, which holds ~17 % model error (a clean case fitted a 1.18 scale; an
+                # offset/drift fit reached those bands only through window leakage)
+                continue
             noise = float(np.sqrt(np.sum(rds[0].noise[n][rds[0].masks[n]])))
-            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s,
-                                              scale_only=ch.group == "body_accel"))
+            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
         return hyps
 
     def _dropout_fit(self, base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff):

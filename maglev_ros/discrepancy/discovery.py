@@ -48,7 +48,10 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
     (severity summed over cells, channels and recordings). Per place the band with the largest
     score is a finding, widened to contiguous neighbour bands scoring >= ``rel_extend`` x its score
     (a resonance between two band centres feeds both triangular bands); its bands are then removed
-    and the next peak of that place is a second finding. Findings are ranked by score."""
+    and the next peak of that place is a second finding. Findings are ranked by score.
+    A vehicle finding is placed along the line by where the sensing magnet (or car-body point) was
+    in its flagged frames (:func:`_vehicle_place`): a girder that rings under the vehicle shows in the
+    magnets while they cross that span."""
     agg: dict = {}
     for m in maps:
         rd = m.rd
@@ -60,10 +63,14 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
             sp = _span_of(ch.position_m, spans) if not ch.on_vehicle else None
             place = ("vehicle" if ch.on_vehicle else (sp.span_id if sp is not None else "line"))
             a = agg.setdefault(place, {"score": np.zeros(g.n_bands), "chan": {}, "t": {}, "edges": g.edges_hz,
-                                       "span": sp, "group": ch.group})
+                                       "span": sp, "group": ch.group, "xs": {}})
             sev = np.where(f, np.abs(m.severity[n]), 0.0)
             bs = sev.sum(axis=0)
             a["score"] += bs
+            x_sensor = _sensor_x(rd.rec, ch, g.t_center_s) if ch.on_vehicle else None
+            if x_sensor is not None:
+                for fr, b in zip(*np.nonzero(f)):
+                    a["xs"].setdefault(int(b), []).append((float(x_sensor[fr]), float(sev[fr, b])))
             for b in np.flatnonzero(bs > 0):
                 a["chan"].setdefault(b, {})
                 a["chan"][b][n] = a["chan"][b].get(n, 0.0) + float(bs[b])
@@ -90,7 +97,10 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
                 for n, v in a["chan"].get(k, {}).items():
                     chans[n] = chans.get(n, 0.0) + v
             ts = [a["t"][k] for k in bands if k in a["t"]]
-            finds.append({"place": place, "span": a["span"], "band": (float(a["edges"][lo]), float(a["edges"][hi + 1])),
+            xs = [xw for k in bands for xw in a["xs"].get(k, [])]
+            span, pos = (a["span"], None) if place != "vehicle" else _vehicle_place(xs, spans)
+            finds.append({"place": place, "span": span, "position_m": pos,
+                          "band": (float(a["edges"][lo]), float(a["edges"][hi + 1])),
                           "score": float(sc[bands].sum()), "channels": chans,
                           "time_s": [min(t[0] for t in ts), max(t[1] for t in ts)], "group": a["group"]})
             sc[bands] = 0.0
@@ -103,18 +113,58 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
         top = order[0]
         sp = fd["span"]
         span = sp.span_id if sp is not None else None
-        pos = [sp.start_m, sp.end_m] if sp is not None else None
+        pos = [sp.start_m, sp.end_m] if sp is not None else fd["position_m"]
         what = ("more vibration of an existing guideway mode than the twin predicts" if modes_in else
                 "a resonance the twin does not have (e.g. an attached component, a loose cover or cable tray, "
                 "a secondary structure on the girder)")
         where = f"span {span}" if span else ("the vehicle" if fd["place"] == "vehicle" else "the line")
+        if fd["place"] == "vehicle" and span:
+            where = f"the vehicle while it crosses span {span}"
         out.append({"kind": "resonance" if not modes_in else "mode_amplitude",
-                    "frequency_hz": [f0, f1], "channels": order,
+                    "frequency_hz": [f0, f1], "channels": order, "sensed_on": fd["place"] if fd["place"] == "vehicle"
+                    else "guideway",
                     "location": {"position_m": pos, "span": span}, "time_s": fd["time_s"],
                     "twin_modes_in_band_hz": sorted(set(round(f, 3) for f in modes_in)), "score": fd["score"],
                     "explanation": f"Unexplained {f0:.0f}-{f1:.0f} Hz vibration on {where} (strongest at {top}): "
                                    f"{what}. No catalogue effect explains it; inspect {where} for it."})
     return out
+
+
+def _sensor_x(rec, ch, t_s: np.ndarray):
+    """x along the line of a vehicle sensor at times ``t_s`` (its magnet's or body point's offset
+    from the vehicle reference point), None without position or offset."""
+    x_ref = rec.position_at(t_s)
+    if x_ref is None:
+        return None
+    if ch.magnet is not None:
+        offs = (rec.metadata.get("vehicle") or {}).get("magnet_offsets_m") or []
+        return x_ref + float(offs[ch.magnet - 1]) if ch.magnet <= len(offs) else None
+    return x_ref + ch.body_x_m if ch.body_x_m is not None else None
+
+
+VEHICLE_SPAN_SHARE = 0.6     # share of a vehicle finding's score on one span that places it there
+
+
+def _vehicle_place(xs: list, spans):
+    """(span, position range) of a vehicle finding from (x, severity) of its flagged cells: the span
+    holding >= ``VEHICLE_SPAN_SHARE`` of the severity, else no span and the 10-90 % severity-weighted
+    stretch on the line (None when nothing was on the line)."""
+    on = [(x, w) for x, w in xs if _span_of(x, spans) is not None]
+    tot = sum(w for _, w in on)
+    if not on or tot <= 0:
+        return None, None
+    share = {}
+    for x, w in on:
+        sid = _span_of(x, spans).span_id
+        share[sid] = share.get(sid, 0.0) + w / tot
+    best = max(share, key=share.get)
+    if share[best] >= VEHICLE_SPAN_SHARE:
+        return next(s for s in spans if s.span_id == best), None
+    x = np.array([p for p, _ in on])
+    w = np.array([q for _, q in on])
+    o = np.argsort(x)
+    c = np.cumsum(w[o]) / w.sum()
+    return None, [float(x[o][np.searchsorted(c, 0.1)]), float(x[o][min(np.searchsorted(c, 0.9), x.size - 1)])]
 
 
 # ------------------------------------------------------------------------------------------
@@ -126,7 +176,9 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
     finder = finder or ResonatorFinder(acceptance, n_freq=6)
     spans = base.spec.spans
     idx = {s.span_id: i for i, s in enumerate(spans)}
-    cands = [d for d in disc if d["location"].get("span") in idx]
+    # girder resonators for what the guideway sensors found on a span; what only the vehicle felt
+    # (even while crossing one span) goes to the suspension-term regression below
+    cands = [d for d in disc if d["location"].get("span") in idx and d.get("sensed_on") != "vehicle"]
     cands.sort(key=lambda d: -d["score"])
     seen = set()
     fits = []
@@ -183,7 +235,9 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             d["location"] = {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id}
         else:
             d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"])
-    if any(not d["location"].get("span") for d in disc):
+    def unplaced(d):
+        return d.get("sensed_on") == "vehicle" or not d["location"].get("span")
+    if any(unplaced(d) for d in disc):
         try:
             terms = sparse_suspension_terms(base.spec, rd_train, rd_test)
         except Exception as exc:
@@ -192,7 +246,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                 log(f"discovery: sparse suspension regression failed: {exc}")
         if terms is not None:
             for d in disc:
-                if not d["location"].get("span"):
+                if unplaced(d):
                     d["model"] = terms
                     if terms.get("accepted"):
                         d["kind"] = "suspension_term"

@@ -428,7 +428,6 @@ def case_specs(split: str = "tune") -> list[dict]:
     out-of-catalogue cases. ``split`` "tune" (used while developing) or "heldout" (never tuned on:
     other seeds, speeds, mesh, noise colour, anti-alias filter, controller lag)."""
     base_seed = 1000 if split == "tune" else 5000
-    rng = np.random.default_rng(base_seed)
     # held-out speeds differ from the tuning speeds and reach above them (34 m/s needs the
     # reconstruction's one-sample-step gap bridging, irregularity/profile.py)
     speeds = (22.0, 30.0) if split == "tune" else (26.0, 34.0)

@@ -21,7 +21,7 @@ from .discovery import discover, model_discoveries
 from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
 from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
 from .localize import Mismatch, mismatches, residual_map
-from .model import CAL_NAMES, CAL_PARAMS, ModelSpec, base_spec, guideway_modal, predict
+from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
 from .recording import GROUP_UNIT, Recording, require_pass
 

@@ -32,7 +32,7 @@ from maglev_ros.twin.guideway import assemble_span
 from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
 from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
 
-from .recording import GROUP_UNIT, Recording
+from .recording import Recording
 
 CAL_PARAMS = ("E", "kb", "kp", "kv")          # calibrated (log-scale factors)
 CAL_NAMES = {"E": "youngs_modulus_pa", "kb": "bearing_stiffness_n_per_m", "kp": "kp_a_per_m",
@@ -114,7 +114,7 @@ def _free_free_shape(L: float):
 
 
 def _carbody_beam(model: VehicleModel):
-    """(x_start, psi) of the car body taken as a uniform free-free beam over the secondary spring
+    """(x_start, psi, length) of the car body taken as a uniform free-free beam over the secondary spring
     positions plus 15 % overhang each end; psi(x - x_start) is its first bending shape."""
     xs = [c.x_m for c in model.connections if c.body_b == "car" or c.body_a == "car"]
     span = max(xs) - min(xs)

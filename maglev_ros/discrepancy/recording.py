@@ -7,7 +7,7 @@ and, where the recording has the optional car-body topic (docs/contract-extensio
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np

@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT_MSG = ROOT.parent / "shared" / "contract" / "msg" / "SensorBlock.msg"
 
@@ -51,3 +53,12 @@ def test_sensorblock_msg_matches_the_contract():
         assert _fields(ours) == _fields(CONTRACT_MSG.read_text())
     assert _fields(ours) == ["std_msgs/Header header", "float64 sample_rate_hz",
                              "string[] channels", "string[] units", "float32[] data"]
+
+
+def test_readme_command_is_installed_in_the_environment_bin():
+    """The README runs `.venv/bin/maglev-ros demo`: the editable install must put the console
+    script next to the interpreter (setup.cfg's [develop] script_dir; the ament template's
+    lib/maglev_ros left a fresh clone without it)."""
+    if sys.prefix == sys.base_prefix:
+        pytest.skip("not running from the project's virtual environment")
+    assert (Path(sys.executable).parent / "maglev-ros").exists()

@@ -328,7 +328,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
                                                    youngs_modulus_pa=spans[i].props.youngs_modulus_pa * (1 - tp["loss"])))
     noise_scale = variant.get("noise_scale", 1.0)
     colour = variant.get("noise_colour", "white")
-    md_pass = [metadata(design, "pass", v, n_spans) for v in speeds]
+    md_pass = [metadata(design, "pass", v, n_spans, variant.get("body_sensors", True)) for v in speeds]
     md_amb = metadata(design, "ambient", 0.0, n_spans)
     gsens = {k: s["position_m"] for k, s in md_amb["sensors"].items()}
     passes = []

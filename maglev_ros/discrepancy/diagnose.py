@@ -320,12 +320,12 @@ class Diagnoser:
         hyps = cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
         if veh:
             hyps.append(cat.control_delay_hypothesis(veh))
-        if body:
-            hyps.append(cat.carbody_hypothesis(body + veh))
             demand = _current_demand_a(spec, rds)
             if demand > 0:
                 hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,
                                                                 spec.config.levitation.static_current_a))
+        if body:
+            hyps.append(cat.carbody_hypothesis(body + veh))
         if gw:
             rd = rds[0]
             shape = ambient_shape(spec, rd)

@@ -121,8 +121,8 @@ def discover(maps, modal, spans, min_cells: int = 3, max_findings: int = 5, rel_
         if fd["place"] == "vehicle" and span:
             where = f"the vehicle while it crosses span {span}"
         out.append({"kind": "resonance" if not modes_in else "mode_amplitude",
-                    "frequency_hz": [f0, f1], "channels": order, "sensed_on": fd["place"] if fd["place"] == "vehicle"
-                    else "guideway",
+                    "frequency_hz": [f0, f1], "channels": order,
+                    "sensed_on": "vehicle" if fd["place"] == "vehicle" else "guideway",
                     "location": {"position_m": pos, "span": span}, "time_s": fd["time_s"],
                     "twin_modes_in_band_hz": sorted(set(round(f, 3) for f in modes_in)), "score": fd["score"],
                     "explanation": f"Unexplained {f0:.0f}-{f1:.0f} Hz vibration on {where} (strongest at {top}): "

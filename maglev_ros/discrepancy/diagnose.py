@@ -17,13 +17,14 @@ from maglev_ros.errors import UserError
 
 from . import catalogue as cat
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge
-from .discovery import discover, model_discoveries
+from .discovery import discover, model_discoveries, persistent_findings
 from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
 from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
-from .localize import Mismatch, mismatches, residual_map
+from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
 from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
 from .recording import GROUP_UNIT, Recording, require_pass
+from .scale_signature import ScaleSignature, scale_signature
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -112,13 +113,17 @@ class Diagnoser:
         drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, cfg.dropout_min_s)]
         nr_before, pc_before = fit_report(base.spec, rd_all)
         # ---- localize
-        maps = [residual_map(rd, model_powers(base.spec, rd)) for rd in rd_all]
+        mp_base = [model_powers(base.spec, rd) for rd in rd_all]
+        maps = [residual_map(rd, mp) for rd, mp in zip(rd_all, mp_base)]
         found: list[Mismatch] = []
         for m in maps:
             found.extend(mismatches(m))
         if rd_amb is not None:
             found.extend(mismatches(residual_map(rd_amb, model_powers(base.spec, rd_amb)), max_regions=4))
         found.sort(key=lambda m: -m.severity * (m.time_s[1] - m.time_s[0]))
+        # band misfits of one girder sensor that persist over whole passes (too weak for any frame)
+        persistent = persistent_mismatches(rd_all, mp_base)
+        found.extend(persistent)
         # ---- hypotheses
         hyps = self._hypotheses(base, rd_train)
         tried = []
@@ -185,6 +190,8 @@ class Diagnoser:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
             local_ev[id(fits[-1][0])] = (fit_report(base.spec, rd_test, {n})[0],
                                          fit_report(fits[-1][0].spec, rd_test, {n})[0])
+        signatures = _scale_signatures(fits, rd_all, mp_base, local_ev, cfg.acceptance)
+        fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
         fits = _peer_check(fits, rd_train[0].rec)
         accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
         accepted.sort(key=lambda t: t[1].heldout_after)
@@ -238,6 +245,7 @@ class Diagnoser:
         maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_all]
         if not chosen:
             disc = discover(maps_after, guideway_modal(final_spec), base_spec_spans(final_spec))
+            disc += persistent_findings(persistent, guideway_modal(final_spec), base_spec_spans(final_spec), disc)
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
                 # the catalogue's gates; reported in ``discovery`` only, never as missing_physics
@@ -287,7 +295,8 @@ class Diagnoser:
                                      f"{d['location'].get('span')}): {why}"})
                 disc = []
         nr_after, pc_after = fit_report(final_spec, rd_all)
-        missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf))) for hf, v, d in chosen]
+        missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
+                               signatures[id(hf)][0] if id(hf) in signatures else None) for hf, v, d in chosen]
         report = {
             "schema": SCHEMA,
             "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
@@ -365,9 +374,13 @@ class Diagnoser:
         return HypFit(h, np.array([t1 - t0]), np.zeros_like(base.theta), rss, spec, 0), v, dbic
 
     def _entry(self, hf: HypFit, v: Verdict, dbic: float, spec: ModelSpec,
-               local: tuple[float, float] | None) -> dict:
+               local: tuple[float, float] | None, sig: ScaleSignature | None = None) -> dict:
         h = hf.hyp
         text, params = h.describe(hf.params, spec)
+        if sig is not None:
+            text += (f" Told from model error by its signature: {sig.explain()} (model error differs band "
+                     f"by band).")
+            params = {**params, "scale_relative_to_peers": sig.relative_scale}
         loc = h.location
         return {"effect": h.effect, "category": h.category, "explanation": text,
                 "location": {"position_m": loc.get("position_m"), "span": loc.get("span"),
@@ -380,6 +393,35 @@ class Diagnoser:
                 **({"heldout_on_its_channels": {"channels": sorted(loc.get("channels") or []),
                                                 "nrmse_before": float(local[0]), "nrmse_after": float(local[1])}}
                    if local else {})}
+
+
+def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], local_ev: dict,
+                      acc: AcceptanceConfig) -> dict:
+    """A scale fault of one channel barely moves the whole-recording fit, which the held-out gates
+    judge (see :mod:`.scale_signature`). A sensor_error fit that failed only those gates is accepted
+    when its channel shows the scale-fault signature against its peers in every recording, the fitted
+    scale goes the same way, it beats the calibrated twin on BIC with plausible values, and its
+    held-out fit on the channel itself improves clearly (>= 4x the relative gain the whole recording
+    needs). Returns id(HypFit) -> (signature, new verdict) for those accepted."""
+    out = {}
+    recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks) for rd, mp in zip(rd_all, mp_base)]
+    for hf, v, d in fits:
+        h = hf.hyp
+        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
+            continue
+        n = h.location["channels"][0]
+        sig = scale_signature(n, recs)
+        if sig is None or not sig.holds:
+            continue
+        ln_s = float(hf.params[0])
+        before, after = local_ev[id(hf)]
+        plaus = h.plausible(hf.params)
+        if (np.sign(ln_s) == np.sign(sig.log_scale_per_pass[0]) and d <= acc.max_delta_bic and plaus[0]
+                and after <= before * (1 - 4 * acc.min_rel_gain)):
+            out[id(hf)] = (sig, Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> "
+                                                 f"{after:.3f}) by the scale-fault signature: {sig.explain()}",),
+                                        v.heldout_before, v.heldout_after, v.delta_bic))
+    return out
 
 
 def _peer_check(fits: list, rec: Recording) -> list:

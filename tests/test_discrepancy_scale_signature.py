@@ -1,0 +1,54 @@
+"""The scale-fault signature against peers: a known scale on one channel among channels whose twin
+carries band-by-band model error (common to the group and per channel) is recovered and told apart;
+healthy channels with the same model error are not called faulty."""
+import numpy as np
+import pytest
+
+from maglev_ros.discrepancy.scale_signature import scale_signature
+
+
+def _recording(rng, scale: dict, n_ch=6, n_frames=40, n_bands=17, common=0.10, own=0.08):
+    """Band powers of one group: twin powers, measured = twin x model error x scale^2 x frame noise."""
+    names = [f"G{i}" for i in range(n_ch)]
+    groups = {n: "guideway_accel" for n in names} | {"M1A": "vehicle_accel"}
+    shape = 10 ** rng.uniform(-4, -1, n_bands)
+    err_common = np.exp(rng.normal(0, common, n_bands))
+    pm, mp, masks = {}, {}, {}
+    for n in names + ["M1A"]:
+        twin = shape * rng.uniform(0.5, 2.0) * np.ones((n_frames, 1))
+        amp_err = err_common * np.exp(rng.normal(0, own, n_bands)) * scale.get(n, 1.0)
+        pm[n] = twin * amp_err ** 2 * rng.chisquare(8, (n_frames, n_bands)) / 8
+        mp[n] = twin
+        masks[n] = np.ones(n_bands, bool)
+    return groups, pm, mp, masks
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_scale_fault_is_recovered_and_healthy_peers_are_not_accused(seed):
+    rng = np.random.default_rng(seed)
+    recs = [_recording(rng, {"G2": 1.35}) for _ in range(2)]
+    sig = scale_signature("G2", recs)
+    assert sig.holds
+    # the group's common model error cancels against the peers: the scale within ~6 %
+    assert sig.relative_scale == pytest.approx(1.35, rel=0.06)
+    for n in ("G0", "G1", "G3", "G4", "G5"):
+        assert not scale_signature(n, recs).holds
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_model_error_alone_is_not_a_scale_fault(seed):
+    rng = np.random.default_rng(100 + seed)
+    recs = [_recording(rng, {}, own=0.12) for _ in range(2)]
+    assert not any(scale_signature(f"G{i}", recs).holds for i in range(6))
+
+
+def test_a_scale_seen_in_one_recording_only_is_not_a_sensor_fault():
+    rng = np.random.default_rng(7)
+    recs = [_recording(rng, {"G2": 1.35}), _recording(rng, {})]
+    assert not scale_signature("G2", recs).holds
+
+
+def test_a_channel_without_two_peers_is_not_judged():
+    rng = np.random.default_rng(8)
+    recs = [_recording(rng, {"M1A": 1.4})]
+    assert scale_signature("M1A", recs) is None

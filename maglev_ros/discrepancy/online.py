@@ -261,9 +261,12 @@ class OnlineDetector:
         t, x = s.window(tend - self.frame_s, tend)
         if t.size < int(round(self.frame_s * fs)):
             return None
-        grid = FrameGrid(np.array([tend - self.frame_s / 2]), self.frame_s, self.edges)
-        pm = band_powers(t, x, fs, grid)[0]
+        pm = self._frame_power(t, x, fs, tend)
         return pm if np.all(np.isfinite(pm)) else None
+
+    def _frame_power(self, t: np.ndarray, x: np.ndarray, fs: float, tend: float) -> np.ndarray:
+        """Band powers of the one frame ending at ``tend``."""
+        return band_powers(t, x, fs, FrameGrid(np.array([tend - self.frame_s / 2]), self.frame_s, self.edges))[0]
 
     def _over(self, ch: str, tend: float, p: np.ndarray, fs: float) -> np.ndarray:
         """Per band the ratio of the residual power to its allowance (inf where there is none):
@@ -288,8 +291,7 @@ class OnlineDetector:
         t, x = self._res[ch].window(tend - self.frame_s, tend)
         if t.size < 8:
             return []
-        grid = FrameGrid(np.array([tend - self.frame_s / 2]), self.frame_s, self.edges)
-        p = band_powers(t, x, fs, grid)[0]
+        p = self._frame_power(t, x, fs, tend)
         usable = self.edges[1:] <= 0.7 * fs / 2
         if not np.all(np.isfinite(p[usable])):
             return []

@@ -204,3 +204,20 @@ def test_vehicle_finding_is_placed_on_the_span_its_magnets_felt_it_over():
     sp, pos = _vehicle_place([(x, 1.0) for x in np.linspace(1, 35, 35)], spans)
     assert sp is None and pos[0] == pytest.approx(4.0, abs=1.01) and pos[1] == pytest.approx(32.0, abs=1.01)
     assert _vehicle_place([(-5.0, 1.0)], spans) == (None, None)
+
+
+def test_a_persistent_misfit_is_never_placed_on_the_healthy_span(attachment_case):
+    """The 38 Hz attachment on S2 (truth) against the twin without it, on a 2-span line: half of the
+    girder sensors are affected, so their peers' median is off too, and a healthy S1 sensor looked
+    1.44x off its peers (26-31 Hz) while it matched the twin within 5 %. Nothing may be placed on S1
+    (the 3-span benchmark cases place the attachments on their spans; tests/test_discrepancy_persistent.py
+    checks the positive case on known band powers)."""
+    from maglev_ros.discrepancy.discovery import persistent_findings
+    from maglev_ros.discrepancy.evaluate import model_powers
+    from maglev_ros.discrepancy.localize import persistent_mismatches
+    truth, spec, rds = attachment_case
+    found = persistent_mismatches(rds, [model_powers(spec, rd) for rd in rds])
+    for m in found:
+        assert m.position_m == pytest.approx((12.384, 24.768)), m
+    finds = persistent_findings(found, guideway_modal(spec), spec.spans, [])
+    assert all(f["location"]["span"] == "S2" and f["persistent"] for f in finds)

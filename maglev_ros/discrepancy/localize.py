@@ -298,6 +298,10 @@ def excess_by_channel(rmap: ResidualMap) -> dict:
 # accelerometers): no band of a clean case reached 0.30 in both passes; attachments on a girder
 # reached 0.36-0.63 on their span's sensors (the mode they detune, or their own band)
 PERSISTENT_MIN_LOG = 0.35
+# ... and it is off from the twin itself by >= this (ln, same sign): with half of the group on the
+# affected span (a 2-span line) the peers' median is itself off, and a healthy sensor of the other
+# span looked 1.44x off its "peers" while it matched the twin within 5 %
+PERSISTENT_MIN_ABS_LOG = 0.2
 PERSISTENT_ONE_RECORDING_LOG = 0.5      # with one recording only: no second look, a higher bar
 PERSISTENT_MIN_SNR = 3.0                # measured band power >= this x noise floor (not noise)
 
@@ -312,6 +316,7 @@ def persistent_mismatches(rds: list[RecData], model_ps: list[dict]) -> list[Mism
     if not rds:
         return []
     per: dict[tuple[str, int], list[float]] = {}
+    absolute: dict[tuple[str, int], list[float]] = {}
     snr_ok: dict[tuple[str, int], bool] = {}
     for rd, mp in zip(rds, model_ps):
         groups: dict[str, list[str]] = {}
@@ -329,14 +334,16 @@ def persistent_mismatches(rds: list[RecData], model_ps: list[dict]) -> list[Mism
                     snr = np.nanmean(rd.pm[n], axis=0) / np.maximum(rd.noise[n], 1e-300)
                 for b in np.flatnonzero(np.isfinite(d)):
                     per.setdefault((n, int(b)), []).append(float(d[b]))
+                    absolute.setdefault((n, int(b)), []).append(float(R[n][b]))
                     snr_ok[(n, int(b))] = snr_ok.get((n, int(b)), True) and bool(snr[b] >= PERSISTENT_MIN_SNR)
     n_rec = len(rds)
     hits: dict[str, dict[int, float]] = {}
     for (n, b), ds in per.items():
         ds_a = np.asarray(ds)
+        ab = np.sign(ds_a) * np.asarray(absolute[(n, b)])
         bar = PERSISTENT_MIN_LOG if n_rec >= 2 else PERSISTENT_ONE_RECORDING_LOG
         if (len(ds) == n_rec and snr_ok[(n, b)] and np.all(np.abs(ds_a) >= bar)
-                and (np.all(ds_a > 0) or np.all(ds_a < 0))):
+                and (np.all(ds_a > 0) or np.all(ds_a < 0)) and np.all(ab >= PERSISTENT_MIN_ABS_LOG)):
             hits.setdefault(n, {})[b] = float(np.mean(ds_a))
     rd0 = rds[0]
     spans = (rd0.rec.metadata.get("line") or {}).get("spans") or []

@@ -398,7 +398,7 @@ class Diagnoser:
 def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], local_ev: dict,
                       acc: AcceptanceConfig) -> dict:
     """A scale fault of one channel barely moves the whole-recording fit, which the held-out gates
-    judge (see :mod:`.scale_signature`). A sensor_error fit that failed only those gates is accepted
+    judge (see :mod:`.scale_signature`). A sensor_error fit rejected by them is accepted
     when its channel shows the scale-fault signature against its peers in every recording, the fitted
     scale goes the same way, it beats the calibrated twin on BIC with plausible values, and its
     held-out fit on the channel itself improves clearly (>= 4x the relative gain the whole recording

@@ -145,13 +145,15 @@ def persistent_findings(persistent, modal, spans, disc: list[dict]) -> list[dict
                and d["frequency_hz"][0] < f1 and f0 < d["frequency_hz"][1] for d in disc + out):
             continue
         modes_in = [float(f) for f in modal.freq_hz if f0 * 0.88 <= f <= f1 * 1.12]
-        what = (f"its response there is {math.sqrt(m.severity):.1f}x (amplitude) off that of the other girder "
-                f"sensors, relative to the twin, in every pass")
+        what = (f"its response there is {m.peer_amplitude_ratio or 1.0:.1f}x (amplitude) off that of the other "
+                f"girder sensors, relative to the twin, in every pass")
         out.append({"kind": "mode_amplitude" if modes_in else "resonance", "frequency_hz": [f0, f1],
                     "channels": list(m.channels), "sensed_on": "guideway",
                     "location": {"position_m": [sp.start_m, sp.end_m], "span": sp.span_id},
                     "time_s": [float(m.time_s[0]), float(m.time_s[1])],
-                    "twin_modes_in_band_hz": sorted(set(round(f, 3) for f in modes_in)), "score": float(m.severity),
+                    "twin_modes_in_band_hz": sorted(set(round(f, 3) for f in modes_in)),
+                    # ranked after the frame-flagged findings (whose scores sum severities over cells)
+                    "score": float((m.peer_amplitude_ratio or 1.0) ** 2),
                     "persistent": True,
                     "explanation": f"Persistent {f0:.0f}-{f1:.0f} Hz misfit on span {sp.span_id} "
                                    f"({', '.join(m.channels)}): {what}. No catalogue effect explains it; "

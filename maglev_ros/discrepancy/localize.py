@@ -48,6 +48,7 @@ class Mismatch:
     severity: float
     group: str = ""
     recording: str = ""
+    peer_amplitude_ratio: float | None = None     # persistent misfits: amplitude ratio to the peers'
 
     def to_dict(self) -> dict:
         return {"channels": list(self.channels), "time_s": [float(self.time_s[0]), float(self.time_s[1])],
@@ -370,10 +371,14 @@ def persistent_mismatches(rds: list[RecData], model_ps: list[dict]) -> list[Mism
             if group:
                 b0, b1 = min(g[0] for g in group), max(g[0] for g in group)
                 chans = tuple(sorted({g[1] for g in group}))
-                # severity: the misfit as a power ratio over the peers' (>= 1: how many times off)
-                sev = float(np.mean([math.exp(2 * abs(g[2])) for g in group]))
+                # severity as for every mismatch: mean |measured - model| band power over the noise floor
+                sev = float(np.mean([np.nanmean(np.abs(rd.pm[c][:, b0:b1 + 1] - mp[c][:, b0:b1 + 1]))
+                                     / max(float(np.mean(rd.noise[c][b0:b1 + 1])), 1e-300)
+                                     for rd, mp in zip(rds, model_ps) for c in chans if c in rd.pm]))
+                ratio = float(np.mean([math.exp(abs(g[2])) for g in group]))
                 out.append(Mismatch(chans, (rd0.rec.t0_s, rd0.rec.t1_s), place, (float(e[b0]), float(e[b1 + 1])),
-                                    sev, rd0.rec.channels[chans[0]].group, "all recordings (persistent band misfit)"))
+                                    sev, rd0.rec.channels[chans[0]].group, "all recordings (persistent band misfit)",
+                                    ratio))
             group = [it] if it is not None else []
     out.sort(key=lambda m: -m.severity)
     return out

@@ -52,3 +52,23 @@ def test_a_channel_without_two_peers_is_not_judged():
     rng = np.random.default_rng(8)
     recs = [_recording(rng, {"M1A": 1.4})]
     assert scale_signature("M1A", recs) is None
+
+
+def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
+    """A peer that improves almost as much (its fit absorbs the group's model error) rejects a
+    sensor fault, unless the accused channel shows the scale-fault signature and the peer does not."""
+    from types import SimpleNamespace as NS
+
+    from maglev_ros.discrepancy.acceptance import Verdict
+    from maglev_ros.discrepancy.diagnose import _peer_check
+
+    def fit(ch):
+        hyp = NS(effect="sensor_error", label=f"sensor_error@{ch}", location={"channels": [ch]})
+        return NS(hyp=hyp)
+    rec = NS(channels={"G3Q": NS(group="guideway_accel"), "G3A": NS(group="guideway_accel")})
+    ok = Verdict(True, (), 0.2, 0.15, -278.0)
+    fits = [(fit("G3Q"), ok, -278.0), (fit("G3A"), Verdict(False, ("x",), 0.2, 0.19, -204.0), -204.0)]
+    assert not _peer_check(fits, rec)[0][1].accepted
+    assert not _peer_check(fits, rec, lambda n: False)[0][1].accepted
+    assert _peer_check(fits, rec, lambda n: n == "G3Q")[0][1].accepted
+    assert not _peer_check(fits, rec, lambda n: True)[0][1].accepted       # both off: common mismatch

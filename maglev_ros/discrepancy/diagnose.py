@@ -192,7 +192,7 @@ class Diagnoser:
                                          fit_report(fits[-1][0].spec, rd_test, {n})[0])
         signatures = _scale_signatures(fits, rd_all, mp_base, local_ev, cfg.acceptance)
         fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
-        fits = _peer_check(fits, rd_train[0].rec)
+        fits = _peer_check(fits, rd_train[0].rec, lambda n: _signature_holds(n, rd_all, mp_base))
         accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
         accepted.sort(key=lambda t: t[1].heldout_after)
         chosen = []
@@ -424,12 +424,22 @@ def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], lo
     return out
 
 
-def _peer_check(fits: list, rec: Recording) -> list:
+def _signature_holds(channel: str, rd_all: list[RecData], mp_base: list[dict]) -> bool:
+    recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks) for rd, mp in zip(rd_all, mp_base)]
+    sig = scale_signature(channel, recs)
+    return bool(sig is not None and sig.holds)
+
+
+def _peer_check(fits: list, rec: Recording, signature_holds=None) -> list:
     """The sensor_error signature is ONE channel off while the others agree with the twin: a
     scale/offset/drift fit that a channel of the same group (same quantity, e.g. the other
     magnet's gap) matches by at least half its training delta BIC points to a mismatch common to
     the group (the model, or the irregularity rebuilt from those very channels), not one sensor.
-    Such fits are rejected with that reason (dropouts are data facts and are kept)."""
+    Such fits are rejected with that reason (dropouts are data facts and are kept), unless the
+    channel shows the scale-fault signature against its peers and that peer does not
+    (``signature_holds(name)``, :mod:`.scale_signature`): then the peer's gain is the group's model
+    error, not a common mismatch (a 0.75 scale on G3Q was rejected because G3A, same span, improved
+    too, while only G3Q was off its peers in every band: -0.19/-0.26 in ln, all bands)."""
     group = {n: c.group for n, c in rec.channels.items()}
     sens = {hf.hyp.location["channels"][0]: d for hf, v, d in fits
             if hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout")}
@@ -440,7 +450,8 @@ def _peer_check(fits: list, rec: Recording) -> list:
             peers = [(p, dp) for p, dp in sens.items() if p != n and group.get(p) == group.get(n)]
             if peers:
                 p, dp = min(peers, key=lambda t: t[1])
-                if d < 0 and dp <= 0.5 * d:
+                if d < 0 and dp <= 0.5 * d and not (signature_holds is not None and signature_holds(n)
+                                                      and not signature_holds(p)):
                     v = Verdict(False, v.reasons + (f"{p} (same quantity) improves almost as much (delta BIC {dp:+.0f} "
                                                     f"vs {d:+.0f}): a mismatch common to those channels, not one "
                                                     f"faulty sensor",), v.heldout_before, v.heldout_after, v.delta_bic)

@@ -69,6 +69,6 @@ def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
     ok = Verdict(True, (), 0.2, 0.15, -278.0)
     fits = [(fit("G3Q"), ok, -278.0), (fit("G3A"), Verdict(False, ("x",), 0.2, 0.19, -204.0), -204.0)]
     assert not _peer_check(fits, rec)[0][1].accepted
-    assert not _peer_check(fits, rec, lambda n: False)[0][1].accepted
-    assert _peer_check(fits, rec, lambda n: n == "G3Q")[0][1].accepted
-    assert not _peer_check(fits, rec, lambda n: True)[0][1].accepted       # both off: common mismatch
+    assert not _peer_check(fits, rec, set())[0][1].accepted
+    assert _peer_check(fits, rec, {"G3Q"})[0][1].accepted
+    assert not _peer_check(fits, rec, {"G3Q", "G3A"})[0][1].accepted       # both off: common mismatch

@@ -190,9 +190,14 @@ class Diagnoser:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
             local_ev[id(fits[-1][0])] = (fit_report(base.spec, rd_test, {n})[0],
                                          fit_report(fits[-1][0].spec, rd_test, {n})[0])
-        signatures = _scale_signatures(fits, rd_all, mp_base, local_ev, cfg.acceptance)
+        # the scale-fault signature of every channel with a sensor_error fit, computed once
+        recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks)
+                for rd, mp in zip(rd_all, mp_base)]
+        sig_of = {ch: scale_signature(ch, recs) for hf, _, _ in fits if hf.hyp.effect == "sensor_error"
+                  for ch in hf.hyp.location["channels"][:1]}
+        signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
         fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
-        fits = _peer_check(fits, rd_train[0].rec, lambda n: _signature_holds(n, rd_all, mp_base))
+        fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds})
         accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
         accepted.sort(key=lambda t: t[1].heldout_after)
         chosen = []
@@ -395,8 +400,7 @@ class Diagnoser:
                    if local else {})}
 
 
-def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], local_ev: dict,
-                      acc: AcceptanceConfig) -> dict:
+def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceConfig) -> dict:
     """A scale fault of one channel barely moves the whole-recording fit, which the held-out gates
     judge (see :mod:`.scale_signature`). A sensor_error fit rejected by them is accepted
     when its channel shows the scale-fault signature against its peers in every recording, the fitted
@@ -404,13 +408,12 @@ def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], lo
     held-out fit on the channel itself improves clearly (>= 4x the relative gain the whole recording
     needs). Returns id(HypFit) -> (signature, new verdict) for those accepted."""
     out = {}
-    recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks) for rd, mp in zip(rd_all, mp_base)]
     for hf, v, d in fits:
         h = hf.hyp
         if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
             continue
         n = h.location["channels"][0]
-        sig = scale_signature(n, recs)
+        sig = sig_of.get(n)
         if sig is None or not sig.holds:
             continue
         ln_s = float(hf.params[0])
@@ -424,20 +427,14 @@ def _scale_signatures(fits: list, rd_all: list[RecData], mp_base: list[dict], lo
     return out
 
 
-def _signature_holds(channel: str, rd_all: list[RecData], mp_base: list[dict]) -> bool:
-    recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks) for rd, mp in zip(rd_all, mp_base)]
-    sig = scale_signature(channel, recs)
-    return bool(sig is not None and sig.holds)
-
-
-def _peer_check(fits: list, rec: Recording, signature_holds=None) -> list:
+def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()) -> list:
     """The sensor_error signature is ONE channel off while the others agree with the twin: a
     scale/offset/drift fit that a channel of the same group (same quantity, e.g. the other
     magnet's gap) matches by at least half its training delta BIC points to a mismatch common to
     the group (the model, or the irregularity rebuilt from those very channels), not one sensor.
     Such fits are rejected with that reason (dropouts are data facts and are kept), unless the
     channel shows the scale-fault signature against its peers and that peer does not
-    (``signature_holds(name)``, :mod:`.scale_signature`): then the peer's gain is the group's model
+    (``scale_faulty``: the channels whose signature holds, :mod:`.scale_signature`): then the peer's gain is the group's model
     error, not a common mismatch (a 0.75 scale on G3Q was rejected because G3A, same span, improved
     too, while only G3Q was off its peers in every band: -0.19/-0.26 in ln, all bands)."""
     group = {n: c.group for n, c in rec.channels.items()}
@@ -450,8 +447,7 @@ def _peer_check(fits: list, rec: Recording, signature_holds=None) -> list:
             peers = [(p, dp) for p, dp in sens.items() if p != n and group.get(p) == group.get(n)]
             if peers:
                 p, dp = min(peers, key=lambda t: t[1])
-                if d < 0 and dp <= 0.5 * d and not (signature_holds is not None and signature_holds(n)
-                                                      and not signature_holds(p)):
+                if d < 0 and dp <= 0.5 * d and not (n in scale_faulty and p not in scale_faulty):
                     v = Verdict(False, v.reasons + (f"{p} (same quantity) improves almost as much (delta BIC {dp:+.0f} "
                                                     f"vs {d:+.0f}): a mismatch common to those channels, not one "
                                                     f"faulty sensor",), v.heldout_before, v.heldout_after, v.delta_bic)

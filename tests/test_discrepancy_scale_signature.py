@@ -4,15 +4,16 @@ healthy channels with the same model error are not called faulty."""
 import numpy as np
 import pytest
 
-from maglev_ros.discrepancy.scale_signature import scale_signature
+from maglev_ros.discrepancy.scale_signature import peer_referenced_fit, scale_signature
 
 
-def _recording(rng, scale: dict, n_ch=6, n_frames=40, n_bands=17, common=0.10, own=0.08):
-    """Band powers of one group: twin powers, measured = twin x model error x scale^2 x frame noise."""
+def _recording(rng, scale: dict, n_ch=6, n_frames=40, n_bands=17, common=0.10, own=0.08, level=1.0):
+    """Band powers of one group: twin powers, measured = twin x model error x scale^2 x frame noise
+    (``level``: the twin's amplitude error common to the whole group, measured/twin)."""
     names = [f"G{i}" for i in range(n_ch)]
     groups = {n: "guideway_accel" for n in names} | {"M1A": "vehicle_accel"}
     shape = 10 ** rng.uniform(-4, -1, n_bands)
-    err_common = np.exp(rng.normal(0, common, n_bands))
+    err_common = level * np.exp(rng.normal(0, common, n_bands))
     pm, mp, masks = {}, {}, {}
     for n in names + ["M1A"]:
         twin = shape * rng.uniform(0.5, 2.0) * np.ones((n_frames, 1))
@@ -72,3 +73,20 @@ def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
     assert not _peer_check(fits, rec, set())[0][1].accepted
     assert _peer_check(fits, rec, {"G3Q"})[0][1].accepted
     assert not _peer_check(fits, rec, {"G3Q", "G3A"})[0][1].accepted       # both off: common mismatch
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_fault_hidden_by_the_twins_level_is_fitted_against_the_peers(seed):
+    """The twin over-predicts the whole group by 17 % and one channel reads 1.2x: against the twin
+    it 'matches'; against its peers' level the scale, the group level and a clear held-out gain show."""
+    rng = np.random.default_rng(200 + seed)
+    recs = [_recording(rng, {"G2": 1.2}, level=1 / 1.17) for _ in range(2)]
+    pf = peer_referenced_fit("G2", recs[:1], recs[1:])
+    assert np.exp(pf.log_scale) == pytest.approx(1.2, rel=0.10)   # one recording, 8 % band scatter
+    assert pf.group_level == pytest.approx(1 / 1.17, rel=0.06)
+    assert pf.heldout_after < 0.8 * pf.heldout_before
+    assert pf.delta_bic < -10
+    # a healthy peer: no scale to speak of and no held-out gain from it
+    ph = peer_referenced_fit("G0", recs[:1], recs[1:])
+    assert abs(ph.log_scale) < 0.1 and ph.heldout_after > 0.8 * ph.heldout_before
+    assert peer_referenced_fit("M1A", recs[:1], recs[1:]) is None

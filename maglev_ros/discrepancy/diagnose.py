@@ -24,7 +24,7 @@ from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
 from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
 from .recording import GROUP_UNIT, Recording, require_pass
-from .scale_signature import ScaleSignature, scale_signature
+from .scale_signature import PeerReferencedFit, ScaleSignature, peer_referenced_fit, scale_signature
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -198,7 +198,12 @@ class Diagnoser:
         signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
         fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
         fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds})
-        accepted = [(hf, v, d) for hf, v, d in fits if v.accepted]
+        # a scale fault whose signature holds but which the twin's own level hides (the whole group off)
+        peer_ref = _peer_referenced(fits, sig_of, recs[:1], recs[:1] if same_heldout else recs[1:], cfg.acceptance,
+                                    base.spec)
+        fits = [peer_ref[id(hf)][0] if id(hf) in peer_ref else (hf, v, d) for hf, v, d in fits]
+        by_peers = {id(t[0]): pf for t, pf in peer_ref.values()}
+        accepted = [(hf, v, d) for hf, v, d in fits if v.accepted and id(hf) not in by_peers]
         accepted.sort(key=lambda t: t[1].heldout_after)
         chosen = []
         final_spec = base.spec
@@ -215,6 +220,8 @@ class Diagnoser:
                     if nr_c < now * (1 - cfg.acceptance.min_rel_gain) and now - nr_c >= cfg.acceptance.min_abs_gain:
                         chosen.append((hf, v, d))
                         final_spec = combo
+        # instrument findings judged against the peers' level: reported, the twin is left as is
+        chosen += [(hf, v, d) for hf, v, d in fits if id(hf) in by_peers and v.accepted]
         rejected = []
         body = sorted({n for rd in rd_all for n in rd.rec.names("body_accel")})
         if not body:
@@ -282,7 +289,10 @@ class Diagnoser:
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, max_resonators=1,
                                          log=notes.append, worst_span_fallback=False)
             ok = [d for d in disc if (d.get("model") or {}).get("accepted")]
-            held_chosen = min(v.heldout_after for _, v, _ in chosen)
+            # (the fit of the chosen model on the whole held-out data: a fault judged against its
+            # peers' level leaves the twin as is)
+            held_chosen = min([fit_report(final_spec, rd_test)[0], *(v.heldout_after for hf, v, _ in chosen
+                                                                     if id(hf) not in by_peers)])
             if ok and ok[0]["model"]["evidence"]["heldout_nrmse_after"] < held_chosen * (1 - cfg.acceptance.min_rel_gain):
                 for hf, v, _ in chosen:
                     rejected.append({"effect": hf.hyp.effect, "why": (
@@ -301,7 +311,9 @@ class Diagnoser:
                 disc = []
         nr_after, pc_after = fit_report(final_spec, rd_all)
         missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
-                               signatures[id(hf)][0] if id(hf) in signatures else None) for hf, v, d in chosen]
+                               signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
+                                   hf.hyp.location["channels"][0]) if id(hf) in by_peers else None,
+                               by_peers.get(id(hf))) for hf, v, d in chosen]
         report = {
             "schema": SCHEMA,
             "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
@@ -379,13 +391,23 @@ class Diagnoser:
         return HypFit(h, np.array([t1 - t0]), np.zeros_like(base.theta), rss, spec, 0), v, dbic
 
     def _entry(self, hf: HypFit, v: Verdict, dbic: float, spec: ModelSpec,
-               local: tuple[float, float] | None, sig: ScaleSignature | None = None) -> dict:
+               local: tuple[float, float] | None, sig: ScaleSignature | None = None,
+               peer_fit: PeerReferencedFit | None = None) -> dict:
         h = hf.hyp
         text, params = h.describe(hf.params, spec)
         if sig is not None:
             text += (f" Told from model error by its signature: {sig.explain()} (model error differs band "
                      f"by band).")
             params = {**params, "scale_relative_to_peers": sig.relative_scale}
+        if peer_fit is not None:
+            g = peer_fit.group_level
+            peers = ", ".join(sig.peers) if sig is not None else "the other sensors of its group"
+            text += (f" Against the calibrated twin alone it does not stand out: the twin is "
+                     f"{abs(1 / g - 1) * 100:.0f} % {'high' if g < 1 else 'low'} on {peers} alike (model "
+                     f"error common to the group, left as is), so the fault was fitted and checked against their level (held-out NRMSE of "
+                     f"its band amplitudes {peer_fit.heldout_before:.3f} -> {peer_fit.heldout_after:.3f}); the twin "
+                     f"is not changed for it.")
+            params = {**params, "group_level_vs_twin": g}
         loc = h.location
         return {"effect": h.effect, "category": h.category, "explanation": text,
                 "location": {"position_m": loc.get("position_m"), "span": loc.get("span"),
@@ -424,6 +446,37 @@ def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceC
             out[id(hf)] = (sig, Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> "
                                                  f"{after:.3f}) by the scale-fault signature: {sig.explain()}",),
                                         v.heldout_before, v.heldout_after, v.delta_bic))
+    return out
+
+
+def _peer_referenced(fits: list, sig_of: dict, train: list, test: list, acc: AcceptanceConfig,
+                     base_spec_: ModelSpec) -> dict:
+    """A sensor_error fit still rejected although its channel shows the scale-fault signature: judged
+    against its peers' level (:class:`.scale_signature.PeerReferencedFit`) by the same kind of
+    gates (delta BIC, plausible scale, held-out gain on the channel >= 4x the relative gain the
+    whole recording needs). Returns id(HypFit) -> ((new HypFit, Verdict, delta BIC), the peer fit);
+    the new fit leaves the twin unchanged (``spec`` = the calibrated twin)."""
+    out = {}
+    for hf, v, d in fits:
+        h = hf.hyp
+        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout"):
+            continue
+        n = h.location["channels"][0]
+        sig = sig_of.get(n)
+        if sig is None or not sig.holds:
+            continue
+        pf = peer_referenced_fit(n, train, test)
+        if pf is None:
+            continue
+        p = np.array([pf.log_scale, 0.0, 0.0])
+        plaus = h.plausible(p)
+        if (np.sign(pf.log_scale) == np.sign(sig.log_scale_per_pass[0]) and pf.delta_bic <= acc.max_delta_bic
+                and plaus[0] and pf.heldout_after <= pf.heldout_before * (1 - 4 * acc.min_rel_gain)):
+            nf = HypFit(h, p, np.zeros_like(hf.cal_delta), hf.rss, base_spec_, 0)
+            out[id(hf)] = ((nf, Verdict(True, (f"accepted against its peers' level (held-out NRMSE of {n} "
+                                               f"{pf.heldout_before:.3f} -> {pf.heldout_after:.3f}) by the scale-fault "
+                                               f"signature: {sig.explain()}",),
+                                        pf.heldout_before, pf.heldout_after, pf.delta_bic), pf.delta_bic), pf)
     return out
 
 

@@ -1,6 +1,6 @@
 """Benchmark of the discrepancy diagnosis on concealed-effect cases (tests/discrepancy_cases.py).
 
-Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|both] [--jobs 2] [--limit N]
+Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|both] [--jobs 2] [--limit N]
        [--only EFFECT,...] [--json OUT]   (cases are written to OUT as they finish)
        .venv/bin/python bench/bench_discrepancy.py --table OUT   (tables of a saved, even partial, run)
 
@@ -9,7 +9,9 @@ place centre - true place| in m; sensor_error: share with the right channel), me
 reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``);
 clean cases: false alarms (and accepted open-ended discoveries); out-of-catalogue: located (band holds the true frequency and
 the place/span is right) and forced into a catalogue name (must be 0). The "heldout" split uses seeds,
-speeds, FE mesh, noise colour, anti-alias filter and controller lag never used while tuning.
+speeds, FE mesh, noise colour, anti-alias filter and controller lag never used while tuning (its cases
+were inspected in session 5); the "blind" split (session 6) also other PSDs, locations and magnitudes,
+and is never tuned on. "both" = tune + heldout.
 """
 from __future__ import annotations
 
@@ -135,7 +137,7 @@ def print_table(title, results):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--split", default="both", choices=("tune", "heldout", "both"))
+    ap.add_argument("--split", default="both", choices=("tune", "heldout", "blind", "both"))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated effects (clean, girder_attachment, ...)")

@@ -74,20 +74,15 @@ def scale_signature(channel: str, recs: list[tuple[dict, dict, dict, dict]]) -> 
     than two peers of its group in some recording."""
     mus, cons, nbs = [], [], []
     peers_all: set[str] = set()
-    for groups, pm, mp, masks in recs:
-        if channel not in pm:
+    for rec in recs:
+        if channel not in rec[1]:
             continue
-        peers = [n for n, g in groups.items() if g == groups[channel] and n != channel and n in pm]
-        if len(peers) < MIN_PEERS:
+        ref = _referenced(channel, rec)
+        if ref is None:
             return None
+        am, ar, _, peers = ref
         peers_all.update(peers)
-        r = log_amplitude_ratio(pm[channel], mp[channel], masks[channel])
-        rp = np.array([log_amplitude_ratio(pm[p], mp[p], masks[p]) for p in peers])
-        with np.errstate(all="ignore"):
-            ok = np.isfinite(r) & (np.sum(np.isfinite(rp), axis=0) >= MIN_PEERS)
-            if ok.sum() < MIN_BANDS:
-                return None
-            d = r[ok] - np.nanmedian(rp[:, ok], axis=0)
+        d = np.log(am / ar)
         mu = float(np.mean(d))
         mus.append(mu)
         cons.append(float(np.mean(np.sign(d) == np.sign(mu))))
@@ -114,8 +109,9 @@ class PeerReferencedFit:
 
 
 def _referenced(channel: str, rec: tuple[dict, dict, dict, dict]):
-    """(measured amplitudes, peer-referenced model amplitudes, peers' median log ratio) over the
-    channel's bands that have >= MIN_PEERS finite peers; None when not testable."""
+    """(measured amplitudes, peer-referenced model amplitudes, peers' median log ratio, peers) over
+    the channel's bands that have >= MIN_PEERS finite peers; None when not testable (fewer than
+    MIN_PEERS peers or MIN_BANDS such bands)."""
     groups, pm, mp, masks = rec
     if channel not in pm:
         return None
@@ -131,14 +127,14 @@ def _referenced(channel: str, rec: tuple[dict, dict, dict, dict]):
         med = np.nanmedian(rp[:, ok], axis=0)
     am = np.sqrt(np.clip(np.nanmean(pm[channel], axis=0), 0, None))[ok]
     at = np.sqrt(np.clip(np.nanmean(mp[channel], axis=0), 0, None))[ok]
-    return am, at * np.exp(med), med
+    return am, at * np.exp(med), med, peers
 
 
 def peer_referenced_fit(channel: str, train: list, test: list) -> PeerReferencedFit | None:
     """Fit the channel's scale against its peer reference on ``train`` recordings and judge it on
     ``test`` ones (each as in :func:`scale_signature`). None when the channel is not testable."""
-    tr = [x for x in (_referenced(channel, r) for r in train) if x is not None]
-    te = [x for x in (_referenced(channel, r) for r in test) if x is not None]
+    tr = [x for x in (_referenced(channel, r) for r in train if channel in r[1]) if x is not None]
+    te = [x for x in (_referenced(channel, r) for r in test if channel in r[1]) if x is not None]
     if not tr or not te:
         return None
     # errors relative to each band's reference amplitude, RMS over the bands: band amplitudes span

@@ -140,3 +140,26 @@ def test_relative_allowance_against_the_measured_signal_works_from_the_first_pas
     assert _feed(OnlineDetector(), t, resid, ("G1",), measured=measured) == []
     resid[on, 0] += 0.3 * measured[on, 0]                    # a 35 % error is still reported
     assert len(_feed(OnlineDetector(), t, resid, ("G1",), measured=measured)) == 1
+
+
+def test_a_late_channel_is_reported_late_with_monotonic_stamps():
+    """Channel B's residual arrives (in wall time) after channel A's whole stream: its incident,
+    which happened BEFORE A's, is still reported with its true interval, flagged late, and its
+    report stamp does not go back in time."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 12.0, 1 / FS)
+    a = rng.normal(0, NOISE, t.size)
+    b = rng.normal(0, NOISE, t.size)
+    a[(t >= 8.0) & (t < 9.0)] += 0.2 * np.sin(2 * np.pi * 20.0 * t[(t >= 8.0) & (t < 9.0)])
+    b[(t >= 3.0) & (t < 4.0)] += 0.2 * np.sin(2 * np.pi * 20.0 * t[(t >= 3.0) & (t < 4.0)])
+    det = OnlineDetector()
+    for name, x in (("A", a), ("B", b)):
+        for k in range(0, t.size, BLOCK_N):
+            det.add_block(Block(int(round(t[k] * 1e9)), "r", FS, (name,), ("m/s^2",),
+                                x[k:k + BLOCK_N, None].astype(np.float32)))
+    det.flush()
+    ev = det.events
+    assert [e.channels for e in ev] == [("A",), ("B",)]
+    assert 7.5 <= ev[0].t0_s <= 8.5 and 2.5 <= ev[1].t0_s <= 3.5 and ev[1].t1_s < ev[0].t0_s
+    assert ev[0].reported_s >= ev[0].t1_s and ev[1].reported_s >= ev[0].reported_s
+    assert ev[1].detail.get("late") and not ev[0].detail.get("late")

@@ -101,6 +101,11 @@ class MismatchEvent:
     category: str = ""
     explanation: str = ""
     detail: dict = field(default_factory=dict)
+    # stream time at which the incident was concluded (>= t1_s, never earlier than the previous
+    # event's): the report's stamp. A channel whose residual arrives late (e.g. the twin withholds a
+    # vehicle stream until the irregularity under every magnet is measured) can close an incident
+    # that ended before one already reported; t0_s/t1_s say when it happened, ``detail["late"]`` flags it
+    reported_s: float = float("nan")
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -173,6 +178,7 @@ class OnlineDetector:
         self._last_t: dict[str, float] = {}     # channel -> end of its last frame
         self._runs: dict[tuple[str, int], dict] = {}
         self._inc: dict | None = None           # the open incident
+        self._last_reported = -np.inf           # stream time of the last event's report
         self._level: dict[str, np.ndarray] = {}  # channel -> learned residual level per band (L)
         self._episode: dict[str, dict] = {}     # channel -> open activity episode
         self._pos_t: deque = deque(maxlen=20000)
@@ -432,4 +438,12 @@ class OnlineDetector:
                        f"over {t1 - t0:.1f} s; run `maglev-ros diagnose` on the recordings to name the missing physics")
         detail = {"runs": len(runs), "merge_gap_s": self.merge_gap_s, "channels": per_ch,
                   "over_allowance": max(finite_over) if finite_over else None}
-        return MismatchEvent(tuple(chans), t0, t1, x0, x1, f0, f1, severity, explanation=explanation, detail=detail)
+        now = self._now()
+        reported = max(t1, now if np.isfinite(now) else t1, self._last_reported)
+        if t1 < self._last_reported:
+            detail["late"] = True
+            explanation += (f" (reported late: the residual of {names} arrived after the report of "
+                            f"t = {self._last_reported:.2f} s)")
+        self._last_reported = reported
+        return MismatchEvent(tuple(chans), t0, t1, x0, x1, f0, f1, severity, explanation=explanation, detail=detail,
+                             reported_s=reported)

@@ -5,7 +5,9 @@ Subscribes every /maglev/twin/residual/<group> (SensorBlock; topics discovered f
 allowance; channels matched by name); publishes maglev_msgs/MismatchReport on /maglev/mismatch
 when ``discrepancy.online.OnlineDetector`` closes an incident (one report per incident: all its
 channels, its time/position span, the union band; per-channel bands in ``detail_json``), and
-flushes the open incident when the node shuts down. Thin adapter: the logic is in the core.
+flushes the open incident when the node shuts down. The report's header stamp is the stream time
+at which the incident was concluded (monotonic; a late-arriving channel's earlier incident says
+"reported late"), its t0_s/t1_s the incident itself. Thin adapter: the logic is in the core.
 Parameters (see the core's docstring): ``threshold`` (10, residual power / noise floor),
 ``frame_s`` (0.5), ``hop_s`` (0.25), ``min_frames`` (2), ``max_s`` (5, longest incident),
 ``merge_gap_s`` (1, runs closer than this are one incident), ``allowance_factor`` (4, x the learned
@@ -70,7 +72,8 @@ class DiscrepancyNode(Node):
 
     def _publish(self, ev) -> None:
         out = MismatchReport()
-        stamp_to_msg(int(ev.t1_s * 1e9), out.header)
+        # stamped when concluded (monotonic; the incident's own interval is t0_s..t1_s)
+        stamp_to_msg(int(round(ev.reported_s * 1e9)), out.header)
         out.header.frame_id = "testline"
         out.channels = list(ev.channels)
         out.t0_s, out.t1_s = float(ev.t0_s), float(ev.t1_s)

@@ -6,7 +6,8 @@ Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|b
 
 Per effect: cases, correct effect, wrong effect, missed, localization error (girder/bearing: |reported
 place centre - true place| in m; sensor_error: share with the right channel), median held-out NRMSE
-reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``);
+reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``),
+cases naming a further effect besides the concealed one (+extra);
 clean cases: false alarms (and accepted open-ended discoveries); out-of-catalogue: located (band holds the true frequency and
 the place/span is right) and forced into a catalogue name (must be 0). The "heldout" split uses seeds,
 speeds, FE mesh, noise colour, anti-alias filter and controller lag never used while tuning (its cases
@@ -77,9 +78,13 @@ def score(results):
                     loc = True
             ooc["located"] += loc
             continue
-        row = rows.setdefault(eff, {"n": 0, "correct": 0, "wrong": 0, "missed": 0, "loc_err": [], "gain": [],
-                                    "gain_ch": []})
+        row = rows.setdefault(eff, {"n": 0, "correct": 0, "wrong": 0, "missed": 0, "extra": 0, "loc_err": [],
+                                    "gain": [], "gain_ch": []})
         row["n"] += 1
+        # a further named effect that is not the concealed one (each case conceals exactly one)
+        ch_true = (truth.get("params") or {}).get("channel")
+        row["extra"] += any(m["effect"] != eff or (ch_true and ch_true not in m["location"]["channels"])
+                            for m in found[1:])
         if not found:
             row["missed"] += 1
             continue
@@ -112,14 +117,15 @@ def print_table(title, results):
     rows, clean, ooc, gains, gains_ch = score(results)
     print(f"\n== {title}: {len(results)} cases ==")
     print(f"{'effect':24s} {'n':>3s} {'correct':>7s} {'wrong':>5s} {'missed':>6s} {'loc.err':>10s} {'gain(med)':>9s} "
-          f"{'on its ch.':>10s}")
+          f"{'on its ch.':>10s} {'+extra':>6s}")
     nc = ncorr = 0
     for eff, r in sorted(rows.items()):
         le = (f"{np.median(r['loc_err']):.1f} m" if eff != "sensor_error" else f"{np.mean(r['loc_err']):.2f} ch") \
             if r["loc_err"] else "-"
         g = f"{np.median(r['gain']) * 100:.0f} %" if r["gain"] else "-"
         gc = f"{np.median(r['gain_ch']) * 100:.0f} %" if r["gain_ch"] else "-"
-        print(f"{eff:24s} {r['n']:3d} {r['correct']:7d} {r['wrong']:5d} {r['missed']:6d} {le:>10s} {g:>9s} {gc:>10s}")
+        print(f"{eff:24s} {r['n']:3d} {r['correct']:7d} {r['wrong']:5d} {r['missed']:6d} {le:>10s} {g:>9s} {gc:>10s} "
+              f"{r.get('extra', 0):6d}")
         nc += r["n"]; ncorr += r["correct"]
     print(f"{'clean (false alarms)':24s} {clean['n']:3d} {'':7s} {'':5s} {'':6s} false alarms: {clean['false_alarms']}"
           f"  accepted discoveries: {clean['discoveries']}")

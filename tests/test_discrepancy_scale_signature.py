@@ -90,3 +90,23 @@ def test_a_fault_hidden_by_the_twins_level_is_fitted_against_the_peers(seed):
     ph = peer_referenced_fit("G0", recs[:1], recs[1:])
     assert abs(ph.log_scale) < 0.1 and ph.heldout_after > 0.8 * ph.heldout_before
     assert peer_referenced_fit("M1A", recs[:1], recs[1:]) is None
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_two_sensors_of_one_span_reading_high_is_the_span_not_two_faults(seed):
+    """Both sensors of span S2 read 1.4x their peers (a span change, e.g. a soft bearing): neither is
+    a sensor fault; one sensor alone reading 1.35x is."""
+    from types import SimpleNamespace as NS
+    from maglev_ros.discrepancy.diagnose import _span_wide
+    rng = np.random.default_rng(300 + seed)
+    pos = {"G0": 2.0, "G1": 4.0, "G2": 14.0, "G3": 16.0, "G4": 26.0, "G5": 28.0}
+    rec = NS(channels={n: NS(group="guideway_accel", position_m=x) for n, x in pos.items()})
+    spec = NS(spans=[NS(span_id=f"S{i + 1}", start_m=12.0 * i, end_m=12.0 * (i + 1)) for i in range(3)])
+    recs = [_recording(rng, {"G2": 1.4, "G3": 1.4}) for _ in range(2)]
+    sig_of = {n: scale_signature(n, recs) for n in pos}
+    assert sig_of["G2"].holds and sig_of["G3"].holds
+    wide = _span_wide(sig_of, recs, rec, spec)
+    assert set(wide) == {"G2", "G3"} and "same span S2" in wide["G2"]
+    recs = [_recording(rng, {"G2": 1.35}) for _ in range(2)]
+    sig_of = {n: scale_signature(n, recs) for n in pos}
+    assert sig_of["G2"].holds and _span_wide(sig_of, recs, rec, spec) == {}

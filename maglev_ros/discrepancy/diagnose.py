@@ -4,6 +4,13 @@
 ``maglev-diagnosis/1`` JSON. The fastest pass is the training pass (calibration and fitting), every
 other pass is held out (acceptance); with a single pass the held-out set is that same pass and
 the report says so in ``rejected`` (weaker evidence).
+
+Which hypotheses are fitted in full: the best ``n_top`` after screening at a trial value, the best
+of every further effect, and every girder/bearing hypothesis of the spans the strongest guideway
+mismatches name. Sensor scale faults of guideway accelerometers are also told by their signature
+against the peers (:mod:`.scale_signature`), judged against the peers' level when the twin's level
+of the whole group is off, and never when another sensor of the same span is off the same way
+(then it is the span).
 """
 from __future__ import annotations
 

@@ -457,8 +457,8 @@ class Diagnoser:
             text += (f" Against the calibrated twin alone it does not stand out: the twin is "
                      f"{abs(1 / g - 1) * 100:.0f} % {'high' if g < 1 else 'low'} on {peers} alike (model "
                      f"error common to the group, left as is), so the fault was fitted and checked against their "
-                     f"level (held-out RMS error of its band amplitudes {peer_fit.heldout_before:.3f} -> {peer_fit.heldout_after:.3f}); the twin "
-                     f"is not changed for it.")
+                     f"level (held-out RMS error of its band amplitudes {peer_fit.heldout_before:.3f} -> "
+                     f"{peer_fit.heldout_after:.3f}); the twin is not changed for it.")
             params = {**params, "group_level_vs_twin": g}
         loc = h.location
         return {"effect": h.effect, "category": h.category, "explanation": text,

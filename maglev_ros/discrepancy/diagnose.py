@@ -319,9 +319,7 @@ class Diagnoser:
             # added resonator (fitted on the calibrated twin's misfit) competes, and wins only with
             # a held-out fit clearly better than the sensor error's
             accused = {c for hf, _, _ in chosen for c in hf.hyp.location.get("channels") or []}
-            spans_acc = {s.span_id for rd in rd_all for c in accused if c in rd.rec.channels
-                         for s in base.spec.spans if rd.rec.channels[c].position_m is not None
-                         and s.start_m <= rd.rec.channels[c].position_m <= s.end_m}
+            spans_acc = {span_of[c] for c in accused if c in span_of}
             disc = discover(maps, guideway_modal(base.spec), base_spec_spans(base.spec), max_findings=12)
             disc = [d for d in disc if d["location"].get("span") in spans_acc and d.get("sensed_on") != "vehicle"][:1]
             if not disc and len(spans_acc) == 1:

@@ -48,6 +48,16 @@ def test_structural_effect_is_named_and_placed(effect, params, span):
     assert ev["heldout_nrmse_after"] < 0.7 * ev["heldout_nrmse_before"] and ev["delta_bic"] < -10
 
 
+@pytest.mark.slow
+def test_attachment_on_a_girder_is_not_called_a_stiffness_loss():
+    """A 38 Hz spring-mass (3 % of the span's mass) at 0.4 L of S2 lowers S2's first mode as a stiffness
+    loss would; it is out of the catalogue and must not be named (bench: tune 26 covers it)."""
+    params = {"span_index": 1, "x_rel_m": 0.4 * 12.384, "freq_hz": 38.0, "mass_ratio": 0.03}
+    case = make_case("att", "girder_attachment", params, seed=31, speeds=(24.0, 30.0), variant=FAST, n_spans=2)
+    rep = diagnose(case.passes, case.ambient).to_dict()
+    assert not any(m["effect"] == "girder_stiffness_loss" for m in rep["missing_physics"])
+
+
 def test_car_body_bending_is_named_from_the_car_body_accelerometers():
     case = make_case("cb", "carbody_flexibility", {"bend_hz": 7.5}, seed=41, speeds=(24.0, 30.0), variant=FAST,
                      n_spans=2)

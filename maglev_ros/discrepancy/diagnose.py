@@ -363,12 +363,12 @@ class Diagnoser:
                     rejected.append({"effect": "added_resonator", "why": f"discovery (resonator on span "
                                      f"{d['location'].get('span')}): {why}"})
                 disc = []
-        elif chosen[0][0].hyp.effect == "girder_stiffness_loss":
+        elif any(hf.hyp.effect == "girder_stiffness_loss" for hf, _, _ in chosen):
             # an attachment on a girder (added mass below its own frequency) lowers the span's first
             # mode as a stiffness loss does: the loss competes with an added resonator on its span, fitted
             # on the calibrated twin's misfit, and must fit the held-out data at least as well (a 38 Hz
             # attachment on S2 was named a 9 % stiffness loss of S2, tune split, session 6)
-            hf0, v0, _ = chosen[0]
+            hf0 = next(hf for hf, _, _ in chosen if hf.hyp.effect == "girder_stiffness_loss")
             span = hf0.hyp.location.get("span")
             cand = discover(maps, guideway_modal(base.spec), base_spec_spans(base.spec), max_findings=12)
             cand += persistent_findings(persistent, guideway_modal(base.spec), base_spec_spans(base.spec), cand)
@@ -383,7 +383,14 @@ class Diagnoser:
                     f"{hf0.hyp.label}: an added resonator on span {span} explains the same misfit at least as well "
                     f"on held-out data (NRMSE {ok[0]['model']['evidence']['heldout_nrmse_after']:.3f} vs "
                     f"{held_chosen:.3f}): something attached to the girder, not a loss of its stiffness")})
-                chosen, final_spec, maps_after, disc = [], base.spec, maps, ok[:1]
+                # any other chosen effect stays, with the twin rebuilt without the loss
+                chosen = [c for c in chosen if c[0] is not hf0]
+                final_spec = base.spec
+                for i, (hf, _, _) in enumerate(c for c in chosen if id(c[0]) not in by_peers):
+                    final_spec = hf.spec if i == 0 else _combine(final_spec, hf)
+                maps_after = ([residual_map(rd, model_powers(final_spec, rd)) for rd in rd_all]
+                              if final_spec is not base.spec else maps)
+                disc = ok[:1]
             else:
                 for d in cand:
                     m = d.get("model") or {}

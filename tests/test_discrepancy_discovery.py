@@ -221,3 +221,12 @@ def test_a_persistent_misfit_is_never_placed_on_the_healthy_span(attachment_case
         assert m.position_m == pytest.approx((12.384, 24.768)), m
     finds = persistent_findings(found, guideway_modal(spec), spec.spans, [])
     assert all(f["location"]["span"] == "S2" and f["persistent"] for f in finds)
+
+
+def test_a_broadly_damped_resonator_is_not_a_plausible_attachment():
+    """Plausibility of a fitted attachment: lightly damped (<= 5 %) passes, 10 % is a broad change of the
+    span's response, not a resonance (the mass ratio and band are inside their bounds in both)."""
+    ok, why = ResonatorFinder._plausible(Resonator(0, 5.0, 41.0, 0.025, 0.03), 30.0, 50.0)
+    assert ok and why == ""
+    ok, why = ResonatorFinder._plausible(Resonator(0, 5.0, 41.0, 0.025, 0.101), 30.0, 50.0)
+    assert not ok and "10.1 %" in why and "broader" in why

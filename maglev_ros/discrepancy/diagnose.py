@@ -326,8 +326,7 @@ class Diagnoser:
             # a held-out fit clearly better than the sensor error's
             accused = {c for hf, _, _ in chosen for c in hf.hyp.location.get("channels") or []}
             spans_acc = {span_of[c] for c in accused if c in span_of}
-            disc = discover(maps, guideway_modal(base.spec), base_spec_spans(base.spec), max_findings=12)
-            disc = [d for d in disc if d["location"].get("span") in spans_acc and d.get("sensed_on") != "vehicle"][:1]
+            disc = _span_findings(maps, base.spec, spans_acc, 1)
             if not disc and len(spans_acc) == 1:
                 # nothing flagged on that span (a scale-like misfit stays under the localization
                 # gates): the accused sensors' whole usable band is the finding to explain
@@ -356,12 +355,8 @@ class Diagnoser:
                 chosen, final_spec = [], base.spec
                 maps_after = maps
             else:
-                for d in disc:
-                    m = d.get("model") or {}
-                    why = ("it fits, but the sensor error explains the misfit as well or better (held-out NRMSE "
-                           f"{held_chosen:.3f})") if m.get("accepted") else "; ".join(m.get("reasons") or ["not fitted"])
-                    rejected.append({"effect": "added_resonator", "why": f"discovery (resonator on span "
-                                     f"{d['location'].get('span')}): {why}"})
+                rejected += _resonator_rejections(disc, "it fits, but the sensor error explains the misfit as well "
+                                                        f"or better (held-out NRMSE {held_chosen:.3f})")
                 disc = []
         elif any(hf.hyp.effect == "girder_stiffness_loss" for hf, _, _ in chosen):
             # an attachment on a girder (added mass below its own frequency) lowers the span's first
@@ -370,9 +365,7 @@ class Diagnoser:
             # attachment on S2 was named a 9 % stiffness loss of S2, tune split, session 6)
             hf0 = next(hf for hf, _, _ in chosen if hf.hyp.effect == "girder_stiffness_loss")
             span = hf0.hyp.location.get("span")
-            cand = discover(maps, guideway_modal(base.spec), base_spec_spans(base.spec), max_findings=12)
-            cand += persistent_findings(persistent, guideway_modal(base.spec), base_spec_spans(base.spec), cand)
-            cand = [d for d in cand if d["location"].get("span") == span and d.get("sensed_on") != "vehicle"][:2]
+            cand = _span_findings(maps, base.spec, {span}, 2, persistent)
             if cand:
                 cand = model_discoveries(cand, base, rd_train, rd_test, cfg.acceptance, max_resonators=2,
                                          log=notes.append, worst_span_fallback=False)
@@ -392,11 +385,8 @@ class Diagnoser:
                               if final_spec is not base.spec else maps)
                 disc = ok[:1]
             else:
-                for d in cand:
-                    m = d.get("model") or {}
-                    why = ("it fits, but the stiffness loss explains the misfit better (held-out NRMSE "
-                           f"{held_chosen:.3f})") if m.get("accepted") else "; ".join(m.get("reasons") or ["not fitted"])
-                    rejected.append({"effect": "added_resonator", "why": f"discovery (resonator on span {span}): {why}"})
+                rejected += _resonator_rejections(cand, "it fits, but the stiffness loss explains the misfit better "
+                                                        f"(held-out NRMSE {held_chosen:.3f})")
         nr_after, pc_after = fit_report(final_spec, rd_all)
         missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                                signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
@@ -510,6 +500,27 @@ class Diagnoser:
                 **({"heldout_on_its_channels": {"channels": sorted(loc.get("channels") or []),
                                                 "nrmse_before": float(local[0]), "nrmse_after": float(local[1])}}
                    if local else {})}
+
+
+def _span_findings(maps, spec: ModelSpec, spans: set, n: int, persistent=None) -> list[dict]:
+    """The ``n`` strongest located findings (frame findings, plus persistent ones when given) of the
+    guideway sensors on ``spans``: what an added resonator there must explain."""
+    modal, all_spans = guideway_modal(spec), base_spec_spans(spec)
+    found = discover(maps, modal, all_spans, max_findings=12)
+    if persistent is not None:
+        found += persistent_findings(persistent, modal, all_spans, found)
+    return [d for d in found if d["location"].get("span") in spans and d.get("sensed_on") != "vehicle"][:n]
+
+
+def _resonator_rejections(disc: list[dict], why_if_accepted: str) -> list[dict]:
+    """``rejected`` entries for resonators that lost a rivalry with a catalogue effect."""
+    out = []
+    for d in disc:
+        m = d.get("model") or {}
+        why = why_if_accepted if m.get("accepted") else "; ".join(m.get("reasons") or ["not fitted"])
+        out.append({"effect": "added_resonator",
+                    "why": f"discovery (resonator on span {d['location'].get('span')}): {why}"})
+    return out
 
 
 def _guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "guideway_disp")) -> dict:

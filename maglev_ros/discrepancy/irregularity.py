@@ -52,10 +52,12 @@ def sensor_delay_s(metadata) -> float:
 
 
 def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, spacing_m: float = 0.02,
-                           margin_m: float = 1.0, max_iterations: int = 3, log=None) -> Recording:
+                           margin_m: float = 1.0, max_iterations: int = 3, denoise: bool = True,
+                           log=None) -> Recording:
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
-    with both an acceleration and a gap channel, or the reconstruction fails."""
+    with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
+    what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets)."""
     from maglev_ros.contract import metadata_from_dict
     from maglev_ros.irregularity.profile import magnet_channel_pairs
     from maglev_ros.irregularity.twin_input import profile_for_twin
@@ -83,7 +85,16 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
         return rec
     info = ti.to_dict()
     info["channel_pairs"] = {int(k): list(v) for k, v in pairs.items()}
-    return replace(rec, irregularity=ti.as_twin_input(), irregularity_valid_m=ti.valid_range_m,
+    x, r = ti.as_twin_input()
+    if denoise:
+        from maglev_ros.irregularity.denoise import apply_gain, coherent_gain
+        g = coherent_gain(ti.result.magnet_profiles_m, ti.spacing_m)
+        if g is None:
+            say(f"{rec.source}: one magnet (or too short a common stretch): the irregularity is not denoised")
+        else:
+            r = apply_gain(r, ti.spacing_m, g)
+            info["denoise"] = g.to_dict()
+    return replace(rec, irregularity=(x, r), irregularity_valid_m=ti.valid_range_m,
                    irregularity_margin_m=float(ti.taper_m + margin_m), sensor_delay_s=tau,
                    irregularity_info=info)
 

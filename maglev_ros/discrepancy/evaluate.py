@@ -349,13 +349,14 @@ def _fit_items(spec: ModelSpec, rd: RecData, only=None,
     return out
 
 
-def residual_vector(spec: ModelSpec, rds: list[RecData]) -> np.ndarray:
+def residual_vector(spec: ModelSpec, rds: list[RecData], channels=None) -> np.ndarray:
     """Normalised residuals of every fitted channel/feature (:func:`_fit_items`), each weighted
-    equally within a recording."""
+    equally within a recording. ``channels``: only those channels and the features built from them."""
     parts = []
     nrec = len(rds)
+    only = set(channels) if channels else None
     for rd in rds:
-        items = _fit_items(spec, rd)
+        items = _fit_items(spec, rd, only)
         for am, at, den in items:
             parts.append((am - at) / den / math.sqrt(len(items) * nrec))
     return np.concatenate(parts)

@@ -7,6 +7,9 @@
 2. Penalised fit: BIC of the extended model beats the calibrated twin by ``max_delta_bic`` (< 0)
    on the training passes (effective sample size = residual count / 2 for the 50 % frame overlap).
 3. Physically plausible parameters (each catalogue entry's own bounds).
+   Physics that acts on one channel group only (levitation: control, magnetic_force) is judged by
+   :func:`judge_where_it_acts`: gate 1 on that group's channels, and the whole recording must not
+   get worse by more than half of ``min_rel_gain``.
 4. Not a calibrated parameter in disguise: the calibrated parameters are re-fitted jointly with the
    extension (see :mod:`.fitting`), so a gain that a change of E, kb, kp or kv gives as well never
    survives gates 1-2; in addition an extension whose band-amplitude signature is > ``max_collinear``
@@ -64,6 +67,20 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
         why.append(f"its signature is {collinearity:.2f} collinear with a calibrated parameter (a change of "
                    f"E, kb, kp or kv explains the same)")
     return Verdict(not why, tuple(why), float(heldout_before), float(heldout_after), float(delta_bic))
+
+
+def judge_where_it_acts(whole_before: float, whole_after: float, local_before: float, local_after: float,
+                        delta_bic: float, plausible: tuple[bool, str], collinearity: float,
+                        cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None) -> Verdict:
+    """:func:`judge` with the held-out gates on the channels the extension acts on (``local_*``,
+    ``local_llr``) and one more: the whole recording's held-out NRMSE may not rise by more than
+    ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
+    v = judge(local_before, local_after, delta_bic, plausible, collinearity, cfg, local_llr)
+    why = tuple(f"on its channels: {r}" if r.startswith("held-out") else r for r in v.reasons)
+    if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
+        why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "
+                f"{whole_after:.3f})",)
+    return Verdict(not why, why, float(whole_before), float(whole_after), float(delta_bic))
 
 
 def collinearity(jcol: np.ndarray, jac_cal: np.ndarray) -> float:

@@ -3,7 +3,11 @@
 ``Diagnoser(config).fit(passes, ambient=None) -> Diagnosis``; ``Diagnosis.to_dict()`` is the public
 ``maglev-diagnosis/1`` JSON. The fastest pass is the training pass (calibration and fitting), every
 other pass is held out (acceptance); with a single pass the held-out set is that same pass and
-the report says so in ``rejected`` (weaker evidence).
+the report says so in ``rejected`` (weaker evidence). Levitation physics (categories control and
+magnetic_force) acts on the vehicle's channels only and is judged there (held-out NRMSE and
+log-likelihood over the magnet channels and their features), provided the whole recording's
+held-out NRMSE does not rise by more than half the required gain; everything else is judged on the
+whole recording.
 
 Which hypotheses are fitted in full: the best ``n_top`` after screening at a trial value, the best
 of every further effect, and every girder/bearing hypothesis of the spans the strongest guideway
@@ -26,7 +30,7 @@ import numpy as np
 from maglev_ros.errors import UserError
 
 from . import catalogue as cat
-from .acceptance import AcceptanceConfig, Verdict, collinearity, judge
+from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .discovery import discover, model_discoveries, persistent_findings
 from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
 from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
@@ -221,13 +225,8 @@ class Diagnoser:
                 # gain is judged there, and the rest of the recording must not get worse (whole-recording
                 # held-out NRMSE was dominated by the guideway sensors: a 6 ms delay fitted as 2-4 ms cut
                 # the vehicle channels' held-out NRMSE 0.179 -> 0.121 but the whole 0.153 -> 0.150)
-                lb, la = local_ev[id(hf)]
-                v = judge(lb, la, dbic, h.plausible(hf.params), col, cfg.acceptance, held_llr_on(hf.spec, loc))
-                why = tuple(f"on its channels: {r}" if r.startswith("held-out") else r for r in v.reasons)
-                if held_after > held_before * (1 + 0.5 * cfg.acceptance.min_rel_gain):
-                    why += (f"it makes the rest of the recording worse (whole held-out NRMSE {held_before:.3f} -> "
-                            f"{held_after:.3f})",)
-                v = Verdict(not why, why, held_before, held_after, dbic)
+                v = judge_where_it_acts(held_before, held_after, *local_ev[id(hf)], dbic, h.plausible(hf.params),
+                                        col, cfg.acceptance, held_llr_on(hf.spec, loc))
             else:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))
@@ -508,6 +507,9 @@ class Diagnoser:
                      f"level (held-out RMS error of its band amplitudes {peer_fit.heldout_before:.3f} -> "
                      f"{peer_fit.heldout_after:.3f}); the twin is not changed for it.")
             params = {**params, "group_level_vs_twin": g}
+        if local and h.category in VEHICLE_WIDE:
+            text += (f" Judged on the vehicle channels it acts on: held-out NRMSE {local[0]:.3f} -> {local[1]:.3f} "
+                     f"(whole recording {v.heldout_before:.3f} -> {v.heldout_after:.3f}).")
         loc = h.location
         return {"effect": h.effect, "category": h.category, "explanation": text,
                 "location": {"position_m": loc.get("position_m"), "span": loc.get("span"),

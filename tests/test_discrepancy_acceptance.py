@@ -1,0 +1,33 @@
+"""Acceptance gates on given numbers (maglev_ros.discrepancy.acceptance): the rules, not our output."""
+from maglev_ros.discrepancy.acceptance import AcceptanceConfig, judge, judge_where_it_acts
+
+CFG = AcceptanceConfig()      # 5 % and 0.005 held-out gain, LLR >= 10, delta BIC <= -10
+OK = (True, "")
+
+
+def test_judge_needs_every_gate():
+    assert judge(0.20, 0.15, -50.0, OK, 0.5, CFG, 40.0).accepted
+    v = judge(0.20, 0.195, -50.0, OK, 0.5, CFG, 40.0)          # 2.5 % gain only
+    assert not v.accepted and "not a clear improvement" in v.reasons[0]
+    assert not judge(0.20, 0.15, -5.0, OK, 0.5, CFG, 40.0).accepted        # BIC
+    assert not judge(0.20, 0.15, -50.0, OK, 0.5, CFG, 4.0).accepted        # held-out LLR
+    assert not judge(0.20, 0.15, -50.0, (False, "implausible"), 0.5, CFG, 40.0).accepted
+    assert not judge(0.20, 0.15, -50.0, OK, 0.99, CFG, 40.0).accepted      # a calibrated parameter
+
+
+def test_levitation_physics_is_judged_on_its_channels():
+    # a control delay: vehicle channels 0.179 -> 0.121, the whole recording 0.153 -> 0.157 (+2.6 %,
+    # just over the half-gain tolerance of 2.5 %) -> rejected for the rest of the recording
+    v = judge_where_it_acts(0.153, 0.157, 0.179, 0.121, -1400.0, OK, 0.5, CFG, 200.0)
+    assert not v.accepted and any("rest of the recording worse" in r for r in v.reasons)
+    v = judge_where_it_acts(0.153, 0.156, 0.179, 0.121, -1400.0, OK, 0.5, CFG, 200.0)
+    assert v.accepted
+    # the verdict carries the whole-recording numbers (effects are ranked on them)
+    assert (v.heldout_before, v.heldout_after) == (0.153, 0.156)
+
+
+def test_levitation_physics_without_a_gain_on_its_channels_is_rejected():
+    v = judge_where_it_acts(0.153, 0.150, 0.179, 0.175, -40.0, OK, 0.5, CFG, 3.0)
+    assert not v.accepted
+    assert any(r.startswith("on its channels: held-out NRMSE") for r in v.reasons)
+    assert any(r.startswith("on its channels: held-out log-likelihood") for r in v.reasons)

@@ -58,6 +58,20 @@ def test_attachment_on_a_girder_is_not_called_a_stiffness_loss():
     assert not any(m["effect"] == "girder_stiffness_loss" for m in rep["missing_physics"])
 
 
+@pytest.mark.slow
+def test_control_delay_is_named_on_the_vehicle_channels():
+    """A 6 ms control delay that the calibrated gains partly absorb: judged on the vehicle channels it
+    acts on (the acceptance rule itself: tests/test_discrepancy_acceptance.py; bench: tune 17 and 36)."""
+    case = make_case("cd", "control_delay", {"lag_s": 0.006}, seed=51, speeds=(24.0, 30.0), variant=FAST,
+                     n_spans=2)
+    rep = diagnose(case.passes, case.ambient).to_dict()
+    top = rep["missing_physics"][0]
+    assert top["effect"] == "control_delay" and top["category"] == "control"
+    assert 0.002 < top["parameters"]["delay_s"] < 0.012
+    own = top["heldout_on_its_channels"]
+    assert own["nrmse_after"] < 0.9 * own["nrmse_before"] and top["evidence"]["delta_bic"] < -10
+
+
 def test_car_body_bending_is_named_from_the_car_body_accelerometers():
     case = make_case("cb", "carbody_flexibility", {"bend_hz": 7.5}, seed=41, speeds=(24.0, 30.0), variant=FAST,
                      n_spans=2)

@@ -196,7 +196,7 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
     lb = np.concatenate([[tr[0](lo * 1.0001 if logp else lo)], CAL_LO[_GAINS]])
     ub = np.concatenate([[tr[0](hi)], CAL_HI[_GAINS]])
     z0 = np.clip(z0, lb + 1e-9, ub - 1e-9)
-    if hyp.effect == "control_delay" and logp:
+    if hyp.effect == "control_delay" and logp and hi > 1e-3:
         # a delay the calibrated gains absorbed sits in another basin: kv has to rise with it (tune
         # case 36, 6 ms: gains re-fitted at 2 / 4 ms cut the training RSS 0.034 -> 0.018, but from the
         # 1-D search's 0.3 ms the joint fit never left it). Start from the best of a few delays with

@@ -174,18 +174,18 @@ class Diagnoser:
         rss0 = float(base.r0 @ base.r0)
         bic0 = bic(rss0, n_eff, 0)
         held_before, _ = fit_report(base.spec, rd_test)
-        r_test0 = residual_vector(base.spec, rd_test)
-        rss_test0 = float(r_test0 @ r_test0)
-        n_test = max(10, r_test0.size // 2)
+        test0: dict = {}          # channels (None: all) -> (held-out RSS, effective count) of the calibrated twin
 
-        def held_llr(spec):
-            r = residual_vector(spec, rd_test)
-            return 0.5 * n_test * math.log(rss_test0 / max(float(r @ r), 1e-300))
-
-        def held_llr_on(spec, chans):
-            """Held-out log-likelihood ratio over the channels ``chans`` (and their features) only."""
-            r0, r1 = residual_vector(base.spec, rd_test, chans), residual_vector(spec, rd_test, chans)
-            return 0.5 * max(10, r0.size // 2) * math.log(max(float(r0 @ r0), 1e-300) / max(float(r1 @ r1), 1e-300))
+        def held_llr(spec, chans=None):
+            """Held-out log-likelihood ratio against the calibrated twin (over ``chans`` and their
+            features only, when given)."""
+            key = frozenset(chans) if chans else None
+            if key not in test0:
+                r0 = residual_vector(base.spec, rd_test, chans)
+                test0[key] = (float(r0 @ r0), max(10, r0.size // 2))
+            rss0, n = test0[key]
+            r = residual_vector(spec, rd_test, chans)
+            return 0.5 * n * math.log(max(rss0, 1e-300) / max(float(r @ r), 1e-300))
         local_ev: dict[int, tuple[float, float]] = {}   # id(HypFit) -> held-out NRMSE on its channels
 
         def where(h):
@@ -226,7 +226,7 @@ class Diagnoser:
                 # held-out NRMSE was dominated by the guideway sensors: a 6 ms delay fitted as 2-4 ms cut
                 # the vehicle channels' held-out NRMSE 0.179 -> 0.121 but the whole 0.153 -> 0.150)
                 v = judge_where_it_acts(held_before, held_after, *local_ev[id(hf)], dbic, h.plausible(hf.params),
-                                        col, cfg.acceptance, held_llr_on(hf.spec, loc))
+                                        col, cfg.acceptance, held_llr(hf.spec, loc))
             else:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))

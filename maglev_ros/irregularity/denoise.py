@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from .integration import _runs
+
 __all__ = ["CoherentGain", "coherent_gain", "apply_gain"]
 
 
@@ -44,15 +46,6 @@ class CoherentGain:
                 "n_magnets": self.n_magnets, "n_points": self.n_points, "half_gain_wavelength_m": cut}
 
 
-def _longest_run(ok: np.ndarray) -> slice:
-    x = np.concatenate([[0], ok.astype(np.int8), [0]])
-    st, en = np.flatnonzero(np.diff(x) == 1), np.flatnonzero(np.diff(x) == -1)
-    if st.size == 0:
-        return slice(0, 0)
-    j = int(np.argmax(en - st))
-    return slice(int(st[j]), int(en[j]))
-
-
 def coherent_gain(magnet_profiles_m: np.ndarray, spacing_m: float, nperseg: int = 256,
                   smooth_bins: int = 3) -> CoherentGain | None:
     """Gain over wavenumber from the per-magnet profiles (n_magnets, n_points) on one grid (NaN where
@@ -61,7 +54,9 @@ def coherent_gain(magnet_profiles_m: np.ndarray, spacing_m: float, nperseg: int 
     P = np.asarray(magnet_profiles_m, float)
     if P.ndim != 2 or P.shape[0] < 2:
         return None
-    seg = P[:, _longest_run(np.all(np.isfinite(P), axis=0))]
+    runs = _runs(np.all(np.isfinite(P), axis=0))
+    i0, i1 = max(runs, key=lambda r: r[1] - r[0]) if runs else (0, 0)
+    seg = P[:, i0:i1]
     n = seg.shape[1]
     nps = int(min(nperseg, n // 4))
     if nps < 16:

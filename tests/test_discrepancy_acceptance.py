@@ -1,4 +1,7 @@
 """Acceptance gates on given numbers (maglev_ros.discrepancy.acceptance): the rules, not our output."""
+import numpy as np
+import pytest
+
 from maglev_ros.discrepancy.acceptance import AcceptanceConfig, judge, judge_where_it_acts
 
 CFG = AcceptanceConfig()      # 5 % and 0.005 held-out gain, LLR >= 10, delta BIC <= -10
@@ -31,3 +34,35 @@ def test_levitation_physics_without_a_gain_on_its_channels_is_rejected():
     assert not v.accepted
     assert any(r.startswith("on its channels: held-out NRMSE") for r in v.reasons)
     assert any(r.startswith("on its channels: held-out log-likelihood") for r in v.reasons)
+
+
+def _profile(x1, x2, y, grid):
+    """RSS of y ~ a x1 + b x2 with b re-fitted at each a (the profile of a)."""
+    out = []
+    for a in grid:
+        r = y - a * x1
+        b = float(x2 @ r) / float(x2 @ x2)
+        out.append((float(a), float(np.sum((r - b * x2) ** 2))))
+    return out
+
+
+def test_profile_spread_tells_an_absorbed_parameter_from_a_determined_one():
+    from maglev_ros.discrepancy.diagnose import IDENTIFIABLE_LLR
+    from maglev_ros.discrepancy.fitting import profile_spread
+    rng = np.random.default_rng(3)
+    n = 400
+    x1 = rng.standard_normal(n)
+    noise = 0.5 * rng.standard_normal(n)
+    grid = np.linspace(0.0, 2.0, 5)
+    # a second regressor equal to the first absorbs any value of a: a flat profile
+    y = 1.0 * x1 + noise
+    flat = _profile(x1, x1.copy(), y, grid)
+    assert profile_spread(flat, n) < 1e-9 < IDENTIFIABLE_LLR
+    # an independent second regressor: a is determined (the profile rises by (a - 1)^2 |x1|^2 / RSS)
+    x2 = rng.standard_normal(n)
+    y = 1.0 * x1 + 0.7 * x2 + noise
+    det = _profile(x1, x2, y, grid)
+    rss = np.array([r for _, r in det])
+    assert profile_spread(det, n) == pytest.approx(0.5 * n * np.log(rss.max() / rss.min()))
+    assert profile_spread(det, n) > 50 * IDENTIFIABLE_LLR
+    assert profile_spread(det[:1], n) == float("inf")      # one point: nothing to compare

@@ -33,7 +33,7 @@ from . import catalogue as cat
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .discovery import discover, model_discoveries, persistent_findings
 from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
-from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, screen
+from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, profile_spread, screen
 from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
 from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
@@ -43,6 +43,9 @@ from .scale_signature import PeerReferencedFit, ScaleSignature, peer_referenced_
 SCHEMA = "maglev-diagnosis/1"
 # categories of physics that act on the vehicle's channels only (judged on them, see fit())
 VEHICLE_WIDE = ("control", "magnetic_force")
+# log-likelihood spread over a parameter profile below which the data cannot tell the values apart
+# (twice the spread, 4, is just above 3.84: the 95 % point of chi-square with one degree of freedom)
+IDENTIFIABLE_LLR = 2.0
 
 
 @dataclass(frozen=True)
@@ -312,7 +315,18 @@ class Diagnoser:
         for hf, v, d in fits:
             if any(hf is c[0] for c in chosen):
                 continue
-            why = "; ".join(v.reasons) if not v.accepted else (
+            reasons = v.reasons
+            if hf.hyp.effect == "control_delay" and not v.accepted and len(hf.profile) >= 3:
+                spread = profile_spread(hf.profile, n_eff)
+                if spread < IDENTIFIABLE_LLR:
+                    q = [x for x, _ in hf.profile]
+                    reasons = reasons + (
+                        f"not identifiable from these passes: with kp, kv re-fitted at each delay the training "
+                        f"misfit is the same from {min(q) * 1e3:.1f} to {max(q) * 1e3:.1f} ms (log-likelihood "
+                        f"spread {spread:.1f} < {IDENTIFIABLE_LLR:g}); the calibrated gains absorb a delay of "
+                        "that size, a pass with stronger excitation above 10 Hz or a recorded control current "
+                        "would tell it",)
+            why = "; ".join(reasons) if not v.accepted else (
                 f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
                 f"less than {chosen[0][0].hyp.label} for the same residual")
             rejected.append({"effect": hf.hyp.effect, "why": f"{hf.hyp.label}: {why}"})

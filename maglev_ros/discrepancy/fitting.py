@@ -77,6 +77,9 @@ class HypFit:
     rss: float
     spec: ModelSpec
     n_sims: int
+    # (parameter value, training RSS with kp, kv re-fitted there): the profile a joint refinement
+    # started from (control_delay), empty otherwise
+    profile: tuple[tuple[float, float], ...] = ()
 
     @property
     def k(self) -> int:
@@ -151,12 +154,22 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
     p = min(cache, key=lambda q: cache[q][0])
     rs, d = cache[p]
     n_sims = len(cache)
+    prof: list = []
     if hyp.effect in VEHICLE_CONTROL_EFFECTS:
-        p, d, rs, n = _joint_refine(base, hyp, rds, p, d, rs, lo, hi)
+        p, d, rs, n = _joint_refine(base, hyp, rds, p, d, rs, lo, hi, profile=prof)
         n_sims += n
     sp = hyp.apply(base.spec, np.array([p]))
     sp = sp.with_(cal=tuple(float(x) for x in base.theta + d))
-    return HypFit(hyp, np.array([p]), d, rs, sp, n_sims)
+    return HypFit(hyp, np.array([p]), d, rs, sp, n_sims, tuple(sorted(prof + [(float(p), float(rs))])))
+
+
+def profile_spread(profile, n_eff: int) -> float:
+    """Log-likelihood spread 0.5 n ln(max RSS / min RSS) over a profile (Gaussian residual of
+    ``n_eff`` effective samples): below ~2 the data cannot tell the profiled values apart."""
+    rss = np.array([r for _, r in profile if np.isfinite(r) and r > 0])
+    if rss.size < 2:
+        return math.inf
+    return 0.5 * n_eff * math.log(rss.max() / rss.min())
 
 
 # extensions of the levitation loop: their signature in the gap-to-rail transmissibility is
@@ -167,9 +180,10 @@ _GAINS = [CAL_PARAMS.index("kp"), CAL_PARAMS.index("kv")]
 
 
 def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float, d0: np.ndarray, rss0: float,
-                  lo: float, hi: float, max_nfev: int = 12):
+                  lo: float, hi: float, max_nfev: int = 12, profile: list | None = None):
     """Nonlinear least squares over (extension parameter, ln kp, ln kv) from the 1-D search's best
-    point (log scale for scale-like parameters), the other calibrated parameters held."""
+    point (log scale for scale-like parameters), the other calibrated parameters held. ``profile``
+    (a list) receives (delay, RSS with kp, kv re-fitted) of the control-delay start grid."""
     th0 = base.theta + d0
     logp = hyp.log_search and lo > 0
     tr = (math.log, math.exp) if logp else ((lambda v: v), (lambda v: v))
@@ -211,6 +225,8 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
             except (ValueError, np.linalg.LinAlgError):
                 continue
             zq = np.concatenate([[tr[0](q)], rg.x])
+            if profile is not None:
+                profile.append((float(q), float(2 * rg.cost)))
             if 2 * rg.cost < best[0]:
                 best = (2 * rg.cost, np.clip(zq, lb + 1e-9, ub - 1e-9))
         z0 = best[1]

@@ -29,6 +29,15 @@ def test_levitation_physics_is_judged_on_its_channels():
     assert (v.heldout_before, v.heldout_after) == (0.153, 0.156)
 
 
+def test_levitation_physics_needs_the_wider_margin_on_its_few_channels():
+    # a clean case's 2 ms "delay": vehicle channels 0.067 -> 0.060 (10.4 %), whole 0.107 -> 0.101
+    v = judge_where_it_acts(0.107, 0.101, 0.067, 0.060, -960.0, OK, 0.5, CFG, 30.0)
+    assert not v.accepted
+    assert any("not a clear improvement" in r and f"{CFG.min_rel_gain_local * 100:.0f} %" in r for r in v.reasons)
+    # the same numbers over the whole recording would pass the ordinary 5 % margin
+    assert judge(0.067, 0.060, -960.0, OK, 0.5, CFG, 30.0).accepted
+
+
 def test_levitation_physics_without_a_gain_on_its_channels_is_rejected():
     v = judge_where_it_acts(0.153, 0.150, 0.179, 0.175, -40.0, OK, 0.5, CFG, 3.0)
     assert not v.accepted

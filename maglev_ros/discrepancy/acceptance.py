@@ -8,8 +8,9 @@
    on the training passes (effective sample size = residual count / 2 for the 50 % frame overlap).
 3. Physically plausible parameters (each catalogue entry's own bounds).
    Physics that acts on one channel group only (levitation: control, magnetic_force) is judged by
-   :func:`judge_where_it_acts`: gate 1 on that group's channels, and the whole recording must not
-   get worse by more than half of ``min_rel_gain``.
+   :func:`judge_where_it_acts`: gate 1 on that group's channels with the relative margin
+   ``min_rel_gain_local``, and the whole recording must not get worse by more than half of
+   ``min_rel_gain``.
 4. Not a calibrated parameter in disguise: the calibrated parameters are re-fitted jointly with the
    extension (see :mod:`.fitting`), so a gain that a change of E, kb, kp or kv gives as well never
    survives gates 1-2; in addition an extension whose band-amplitude signature is > ``max_collinear``
@@ -17,7 +18,7 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -25,6 +26,10 @@ import numpy as np
 @dataclass(frozen=True)
 class AcceptanceConfig:
     min_rel_gain: float = 0.05
+    # on the few channels an effect acts on (the magnets') the calibrated twin's own misfit moves more
+    # between passes: clean tune cases gained 5.3-10.4 % there with a 1.2-2.5 ms "delay" (session 9),
+    # real 4-10 ms delays 29-75 %
+    min_rel_gain_local: float = 0.15
     min_abs_gain: float = 0.005
     min_heldout_llr: float = 10.0
     max_delta_bic: float = -10.0
@@ -73,9 +78,10 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
                         delta_bic: float, plausible: tuple[bool, str], collinearity: float,
                         cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None) -> Verdict:
     """:func:`judge` with the held-out gates on the channels the extension acts on (``local_*``,
-    ``local_llr``) and one more: the whole recording's held-out NRMSE may not rise by more than
+    ``local_llr``; relative margin ``min_rel_gain_local``) and one more: the whole recording's held-out NRMSE may not rise by more than
     ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
-    v = judge(local_before, local_after, delta_bic, plausible, collinearity, cfg, local_llr)
+    v = judge(local_before, local_after, delta_bic, plausible, collinearity,
+              replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr)
     why = tuple(f"on its channels: {r}" if r.startswith("held-out") else r for r in v.reasons)
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
         why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "

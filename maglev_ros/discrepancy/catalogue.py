@@ -128,15 +128,22 @@ def bearing_hypotheses(spec: ModelSpec) -> list[Hypothesis]:
     return out
 
 
+MIN_CONTROL_DELAY_S = 2e-3     # shorter fitted delays are no separate finding (see control_delay_hypothesis)
+
+
 def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
     def apply(sp, p):
         return sp.with_(control_lag_s=max(float(p[0]), 0.0))
 
     def plaus(p):
-        if p[0] < 1e-3:
-            # a digital levitation controller's own sampling and filter lag (~1 ms at 1-2 kHz) belongs
-            # to the calibrated loop: below that a delay is no separate finding
-            return False, f"fitted delay {p[0] * 1e3:.2f} ms is below 1 ms (within the controller's own lag)"
+        if p[0] < MIN_CONTROL_DELAY_S:
+            # a digital levitation controller's own sampling and filter lag (a few cycles at 1-2 kHz plus
+            # the gap sensor's filter) belongs to the calibrated loop, whose gains absorb a lag that short:
+            # on clean tune cases driven by the long-wave rail (session 9) delays of 1.2-1.4 ms were fitted
+            # with 6-7 % held-out gains on the vehicle channels, while real 4-10 ms delays came out at
+            # 3.1-5.4 ms with 65-75 % gains there
+            return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below {MIN_CONTROL_DELAY_S * 1e3:.0f} ms "
+                           "(within the controller's own lag)")
         if p[0] > 0.025:
             return False, f"fitted delay {p[0] * 1e3:.0f} ms is longer than any levitation controller allows"
         return True, ""

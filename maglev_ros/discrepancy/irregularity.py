@@ -53,7 +53,7 @@ def sensor_delay_s(metadata) -> float:
 
 def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, spacing_m: float = 0.02,
                            margin_m: float = 1.0, max_iterations: int = 3, denoise: bool = True,
-                           log=None) -> Recording:
+                           log=None, **profile_kw) -> Recording:
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
     with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
@@ -79,7 +79,8 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
     try:
         ti = profile_for_twin(acc, gap, pos, md, spec.effective_config(), spec.effective_spans(),
                               highpass_hz=highpass_hz, spacing_m=spacing_m, channel_pairs=pairs,
-                              sensor_delay_s=tau, max_iterations=max_iterations, dt_max_s=spec.dt_max_s)
+                              sensor_delay_s=tau, max_iterations=max_iterations, dt_max_s=spec.dt_max_s,
+                              **profile_kw)
     except (UserError, ValueError, np.linalg.LinAlgError) as exc:
         say(f"{rec.source}: irregularity reconstruction failed ({exc}): the twin runs on a perfect guideway")
         return rec

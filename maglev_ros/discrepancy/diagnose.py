@@ -335,8 +335,8 @@ class Diagnoser:
                         f"not identifiable from these passes: with kp, kv re-fitted at each delay the training "
                         f"misfit is the same from {min(q) * 1e3:.1f} to {max(q) * 1e3:.1f} ms (log-likelihood "
                         f"spread {spread:.1f} < {IDENTIFIABLE_LLR:g}); the calibrated gains absorb a delay of "
-                        "that size, a pass with stronger excitation above 10 Hz or a recorded control current "
-                        "would tell it",)
+                        "that size (a recorded magnet current, which the recording contract does not carry, or a "
+                        "faster pass may separate them)",)
             why = "; ".join(reasons) if not v.accepted else (
                 f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
                 f"less than {chosen[0][0].hyp.label} for the same residual")

@@ -57,7 +57,9 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
     with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
-    what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets)."""
+    what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets).
+    Further keywords (``band_factor``, ``trim_wavelengths``, ``edge_s``, ...) go to
+    :func:`~maglev_ros.irregularity.twin_input.profile_for_twin` and its profiler."""
     from maglev_ros.contract import metadata_from_dict
     from maglev_ros.irregularity.profile import magnet_channel_pairs
     from maglev_ros.irregularity.twin_input import profile_for_twin

@@ -141,7 +141,7 @@ def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
             # the gap sensor's filter) belongs to the calibrated loop, whose gains absorb a lag that short:
             # on clean tune cases driven by the long-wave rail (session 9) delays of 1.2-1.4 ms were fitted
             # with 6-7 % held-out gains on the vehicle channels, while real 4-10 ms delays came out at
-            # 3.1-5.4 ms with 65-75 % gains there
+            # 3.1-5.6 ms with 29-76 % gains there
             return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below {MIN_CONTROL_DELAY_S * 1e3:.0f} ms "
                            "(within the controller's own lag)")
         if p[0] > 0.025:

@@ -79,8 +79,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
                         cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None) -> Verdict:
     """:func:`judge` with the held-out gates on the channels the extension acts on (``local_*``,
     ``local_llr``; relative margin ``min_rel_gain_local``) and one more: the whole recording's
-    held-out NRMSE may not rise by more than
-    ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
+    held-out NRMSE may not rise by more than ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
     v = judge(local_before, local_after, delta_bic, plausible, collinearity,
               replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr)
     why = tuple(f"on its channels: {r}" if r.startswith("held-out") else r for r in v.reasons)

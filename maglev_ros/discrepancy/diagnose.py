@@ -33,7 +33,7 @@ from . import catalogue as cat
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .discovery import discover, model_discoveries, persistent_findings
 from .evaluate import RecData, ambient_shape, fit_report, model_powers, prepare, residual_vector
-from .fitting import BaseFit, HypFit, bic, fit_base, fit_hypothesis, profile_spread, screen
+from .fitting import IDENTIFIABLE_LLR, BaseFit, HypFit, bic, fit_base, fit_hypothesis, profile_spread, screen
 from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
 from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
@@ -43,9 +43,6 @@ from .scale_signature import PeerReferencedFit, ScaleSignature, peer_referenced_
 SCHEMA = "maglev-diagnosis/1"
 # categories of physics that act on the vehicle's channels only (judged on them, see fit())
 VEHICLE_WIDE = ("control", "magnetic_force")
-# log-likelihood spread over a parameter profile below which the data cannot tell the values apart
-# (twice the spread, 4, is just above 3.84: the 95 % point of chi-square with one degree of freedom)
-IDENTIFIABLE_LLR = 2.0
 
 
 @dataclass(frozen=True)

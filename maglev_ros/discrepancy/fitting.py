@@ -160,12 +160,19 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
         n_sims += n
     sp = hyp.apply(base.spec, np.array([p]))
     sp = sp.with_(cal=tuple(float(x) for x in base.theta + d))
-    return HypFit(hyp, np.array([p]), d, rs, sp, n_sims, tuple(sorted(prof + [(float(p), float(rs))])))
+    profile = tuple(sorted(prof + [(float(p), float(rs))])) if prof else ()
+    return HypFit(hyp, np.array([p]), d, rs, sp, n_sims, profile)
+
+
+# log-likelihood spread over a parameter profile below which the data cannot tell the values apart
+# (twice the spread, 4, is just above 3.84: the 95 % point of chi-square with one degree of freedom)
+IDENTIFIABLE_LLR = 2.0
 
 
 def profile_spread(profile, n_eff: int) -> float:
     """Log-likelihood spread 0.5 n ln(max RSS / min RSS) over a profile (Gaussian residual of
-    ``n_eff`` effective samples): below ~2 the data cannot tell the profiled values apart."""
+    ``n_eff`` effective samples): below ``IDENTIFIABLE_LLR`` the data cannot tell the profiled
+    values apart."""
     rss = np.array([r for _, r in profile if np.isfinite(r) and r > 0])
     if rss.size < 2:
         return math.inf

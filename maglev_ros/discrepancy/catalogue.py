@@ -30,6 +30,9 @@ EFFECTS = {"bearing_stiffness": "boundary_condition", "control_delay": "control"
            "magnet_nonlinearity": "magnetic_force", "ambient_excitation": "excitation",
            "girder_stiffness_loss": "guideway_structure", "carbody_flexibility": "vehicle_structure",
            "sensor_error": "instrumentation"}
+# categories of physics that act on the vehicle's channels only: fitted and judged there
+# (fitting.fit_hypothesis, diagnose.Diagnoser.fit)
+VEHICLE_WIDE = ("control", "magnetic_force")
 
 
 @dataclass(frozen=True, eq=False)

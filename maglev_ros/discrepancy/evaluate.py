@@ -311,14 +311,15 @@ def fit_mask(rd: RecData, name: str) -> np.ndarray:
     return m
 
 
-def _fit_items(spec: ModelSpec, rd: RecData, only=None,
-               mp: dict | None = None) -> list[tuple[np.ndarray, np.ndarray, float]]:
+def _fit_items(spec: ModelSpec, rd: RecData, only=None, mp: dict | None = None,
+               names_out: list | None = None) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """(measured, modelled, scale) of every fitted channel/feature of one recording: band
     amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
     and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's whole
     amplitude over those frames).
     ``only``: a set of channel names; then only those channels and the features built from them.
-    ``mp``: the model band powers when the caller has them."""
+    ``mp``: the model band powers when the caller has them. ``names_out`` (a list) receives the
+    channel names each item is built from."""
     mp = model_powers(spec, rd) if mp is None else mp
     ms = model_transmissibility(spec, rd) if rd.sens else {}
     out = []
@@ -326,26 +327,28 @@ def _fit_items(spec: ModelSpec, rd: RecData, only=None,
     def use(*names):
         return only is None or bool(set(names) & only)
 
-    def add(am, at, den=None):
+    def add(am, at, den=None, names=()):
+        if names_out is not None:
+            names_out.append(tuple(names))
         ok = np.isfinite(am) & np.isfinite(at)
         am, at = am[ok], at[ok]
         out.append((am, at, den if den is not None else (float(np.sqrt(np.sum(am ** 2))) or 1.0)))
 
-    def amp(meas, mod, m):          # band powers -> amplitudes over the bands m
-        add(np.sqrt(np.clip(meas[:, m], 0, None)), np.sqrt(np.clip(mod[:, m], 0, None)))
+    def amp(meas, mod, m, names):   # band powers -> amplitudes over the bands m
+        add(np.sqrt(np.clip(meas[:, m], 0, None)), np.sqrt(np.clip(mod[:, m], 0, None)), names=names)
     for n in rd.rec.channels:
         m = fit_mask(rd, n)
         if m.any() and use(n):
-            amp(rd.pm[n], mp[n], m)
+            amp(rd.pm[n], mp[n], m, (n,))
     for k in rd.sens:
         if use(*rd.sens_pairs[k]):
-            amp(rd.sens[k], ms[k], rd.sens_masks[k])
+            amp(rd.sens[k], ms[k], rd.sens_masks[k], rd.sens_pairs[k])
     for g in rd.level:
         if use(g):
-            add(rd.level[g], ms[g], rd.level_den[g])
+            add(rd.level[g], ms[g], rd.level_den[g], (g,))
     for b, mags in rd.body_pairs.items():
         if use(b, *mags):
-            amp(rd.body[b], body_transmissibility(mp[b], [mp[m] for m in mags]), rd.body_masks[b])
+            amp(rd.body[b], body_transmissibility(mp[b], [mp[m] for m in mags]), rd.body_masks[b], (b, *mags))
     return out
 
 
@@ -360,6 +363,18 @@ def residual_vector(spec: ModelSpec, rds: list[RecData], channels=None) -> np.nd
         for am, at, den in items:
             parts.append((am - at) / den / math.sqrt(len(items) * nrec))
     return np.concatenate(parts)
+
+
+def residual_rows(spec: ModelSpec, rds: list[RecData], channels) -> np.ndarray:
+    """Mask over :func:`residual_vector` (all channels): True on the rows of the items built from
+    ``channels`` (the restricted vector keeps those rows, only scaled otherwise)."""
+    only = set(channels)
+    rows = []
+    for rd in rds:
+        names: list = []
+        items = _fit_items(spec, rd, names_out=names)
+        rows += [np.full(am.size, bool(set(nm) & only)) for (am, _, _), nm in zip(items, names)]
+    return np.concatenate(rows) if rows else np.zeros(0, bool)
 
 
 def fit_report(spec: ModelSpec, rds: list[RecData], channels=None) -> tuple[float, dict]:

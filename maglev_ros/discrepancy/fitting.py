@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from .catalogue import Hypothesis
-from .evaluate import RecData, residual_vector
+from .catalogue import VEHICLE_WIDE, Hypothesis
+from .evaluate import RecData, residual_rows, residual_vector
 from .model import CAL_PARAMS, ModelSpec
 
 PRIOR_SIGMA = 0.5
@@ -59,14 +59,19 @@ def fit_base(spec: ModelSpec, rds: list[RecData], max_nfev: int = 6) -> BaseFit:
     return BaseFit(sp, th, np.asarray(jac), r0, calls[0])
 
 
-def _project(base: BaseFit, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Re-fit calibrated parameters linearly: min ||r + J d||^2 + ||0.02 (th + d)/sigma||^2."""
-    J = base.jac
+def _project(base: BaseFit, r: np.ndarray, rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Re-fit calibrated parameters linearly: min ||r + J d||^2 + ||0.02 (th + d)/sigma||^2
+    (``rows``: ``r`` holds only those rows of the residual vector, the vehicle channels', and only
+    the levitation gains are re-fitted: those rows do not see E and kb, which then drifted freely
+    and moved the guideway, tune case 36)."""
+    cols = np.arange(base.theta.size) if rows is None else np.array(_GAINS)
+    J = (base.jac if rows is None else base.jac[rows])[:, cols]
     lam = (0.02 / PRIOR_SIGMA) ** 2
     A = J.T @ J + lam * np.eye(J.shape[1])
-    d = -np.linalg.solve(A, J.T @ r + lam * base.theta)
+    d = np.zeros_like(base.theta)
+    d[cols] = -np.linalg.solve(A, J.T @ r + lam * base.theta[cols])
     d = np.clip(base.theta + d, CAL_LO, CAL_HI) - base.theta
-    return r + J @ d, d
+    return r + J @ d[cols], d
 
 
 @dataclass
@@ -113,25 +118,31 @@ def _safe_residual(spec, rds):
 
 
 def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
-           upper: float | None = None) -> HypFit:
+           upper: float | None = None, rows: np.ndarray | None = None) -> HypFit:
     """Bounded scalar search over the extension parameter; calibrated parameters projected by one
-    Gauss-Newton step and, when that step is not small, re-simulated at the projected values."""
+    Gauss-Newton step and, when that step is not small, re-simulated at the projected values.
+    ``rows``: fit on those rows of the residual vector only (the channels the extension acts on);
+    the returned RSS is over every row, as the penalised criterion compares it with the base fit's."""
     cache = {}
+
+    def res_of(sp):
+        r = _safe_residual(sp, rds)
+        return r if r is None or rows is None else r[rows]
 
     def rss(p):
         sp = hyp.apply(base.spec, np.array([p]))
-        r = _safe_residual(sp, rds)
+        r = res_of(sp)
         if r is None:
             cache[p] = (math.inf, np.zeros_like(base.theta))
             return 1e30
-        rp, d = _project(base, r)
+        rp, d = _project(base, r, rows)
         best = (float(rp @ rp), d)
         if np.max(np.abs(d)) > 0.02:
             # a large projected step is re-simulated; the linearisation can overshoot (a long
             # control delay that the calibrated gains had partly absorbed: the step made the fit
             # worse than no step), so the better of "no re-fit" and "re-fit" is kept
             best = (float(r @ r), np.zeros_like(d))
-            r2 = _safe_residual(sp.with_(cal=tuple(float(x) for x in base.theta + d)), rds)
+            r2 = res_of(sp.with_(cal=tuple(float(x) for x in base.theta + d)))
             if r2 is not None and float(r2 @ r2) < best[0]:
                 best = (float(r2 @ r2), d)
         cache[p] = best
@@ -156,11 +167,15 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
     n_sims = len(cache)
     prof: list = []
     if hyp.effect in VEHICLE_CONTROL_EFFECTS:
-        p, d, rs, n = _joint_refine(base, hyp, rds, p, d, rs, lo, hi, profile=prof)
+        p, d, rs, n = _joint_refine(base, hyp, rds, p, d, rs, lo, hi, profile=prof, rows=rows)
         n_sims += n
     sp = hyp.apply(base.spec, np.array([p]))
     sp = sp.with_(cal=tuple(float(x) for x in base.theta + d))
     profile = tuple(sorted(prof + [(float(p), float(rs))])) if prof else ()
+    if rows is not None:
+        r = _safe_residual(sp, rds)
+        rs = float(r @ r) if r is not None else math.inf
+        n_sims += 1
     return HypFit(hyp, np.array([p]), d, rs, sp, n_sims, profile)
 
 
@@ -187,10 +202,12 @@ _GAINS = [CAL_PARAMS.index("kp"), CAL_PARAMS.index("kv")]
 
 
 def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float, d0: np.ndarray, rss0: float,
-                  lo: float, hi: float, max_nfev: int = 12, profile: list | None = None):
+                  lo: float, hi: float, max_nfev: int = 12, profile: list | None = None,
+                  rows: np.ndarray | None = None):
     """Nonlinear least squares over (extension parameter, ln kp, ln kv) from the 1-D search's best
     point (log scale for scale-like parameters), the other calibrated parameters held. ``profile``
-    (a list) receives (delay, RSS with kp, kv re-fitted) of the control-delay start grid."""
+    (a list) receives (delay, RSS with kp, kv re-fitted) of the control-delay start grid. ``rows``:
+    fitted on those rows of the residual vector only (``rss0`` is over them too)."""
     th0 = base.theta + d0
     logp = hyp.log_search and lo > 0
     tr = (math.log, math.exp) if logp else ((lambda v: v), (lambda v: v))
@@ -206,8 +223,8 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
         sp, th = spec_of(z)
         r = _safe_residual(sp, rds)
         if r is None:
-            return np.full(base.r0.size + 2, 1e3)
-        return np.concatenate([r, 0.02 * th[_GAINS] / PRIOR_SIGMA])
+            return np.full((base.r0.size if rows is None else int(rows.sum())) + 2, 1e3)
+        return np.concatenate([r if rows is None else r[rows], 0.02 * th[_GAINS] / PRIOR_SIGMA])
     z0 = np.concatenate([[tr[0](p0)], th0[_GAINS]])
     if hyp.effect == "control_delay":
         # the gains move in this fit: the delay may go up to what the most stable gains allow
@@ -223,16 +240,26 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
         # 1-D search's 0.3 ms the joint fit never left it). Start from the best of a few delays with
         # kp, kv fitted at each.
         best = (float(np.sum(fun(z0) ** 2)), z0)
+        unstable = 0.5 * ((base.r0.size if rows is None else int(rows.sum())) + 2) * 1e6
         for q in np.geomspace(max(lo, 1e-3), hi, 4):
             def fg(g, q=q):
                 return fun(np.concatenate([[tr[0](q)], g]))
-            try:
-                rg = least_squares(fg, z0[1:], bounds=(lb[1:], ub[1:]), diff_step=0.02, max_nfev=4,
-                                   ftol=1e-3, xtol=1e-3)
-            except (ValueError, np.linalg.LinAlgError):
+            rg = None
+            # from the calibrated gains, and where the twin is unstable there (a calibration that
+            # absorbed the delay by lowering kv: tune case 17, kv at its lower bound, unstable beyond
+            # 5.7 ms), from the design's kv
+            for g0 in (z0[1:], np.array([z0[1], 0.0])):
+                try:
+                    rg = least_squares(fg, np.clip(g0, lb[1:] + 1e-9, ub[1:] - 1e-9), bounds=(lb[1:], ub[1:]),
+                                       diff_step=0.02, max_nfev=4, ftol=1e-3, xtol=1e-3)
+                except (ValueError, np.linalg.LinAlgError):
+                    rg = None
+                if rg is not None and rg.cost < unstable:
+                    break
+            if rg is None:
                 continue
             zq = np.concatenate([[tr[0](q)], rg.x])
-            if profile is not None:
+            if profile is not None and rg.cost < unstable:
                 profile.append((float(q), float(2 * rg.cost)))
             if 2 * rg.cost < best[0]:
                 best = (2 * rg.cost, np.clip(zq, lb + 1e-9, ub - 1e-9))
@@ -243,6 +270,8 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
         return p0, d0, rss0, n[0]
     sp, th = spec_of(res.x)
     r = _safe_residual(sp, rds)
+    if r is not None and rows is not None:
+        r = r[rows]
     if r is None or float(r @ r) >= rss0:
         return p0, d0, rss0, n[0]
     return float(tr[1](res.x[0])), th - base.theta, float(r @ r), n[0]
@@ -310,10 +339,19 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit
     if hyp.effect == "ambient_excitation":
         return fit_ambient(base, hyp, rds)
     upper = stable_lag_limit(base.spec) if hyp.effect == "control_delay" else None
+    # levitation physics (control, magnetic force) is fitted where it acts, on the vehicle channels:
+    # fitted on every channel, the guideway sensors' own model error pulled a delay along its ridge
+    # with kv (tune case 36, 6 ms: fitted 4.3 ms with kv +62 %, guideway held-out NRMSE 0.13 -> 0.23,
+    # although the true delay and gains improved the whole held-out fit, 0.137 -> 0.128)
+    rows = None
+    if hyp.category in VEHICLE_WIDE and hyp.location.get("channels"):
+        rows = residual_rows(base.spec, rds, hyp.location["channels"])
+        if rows.size != base.r0.size or not rows.any():
+            rows = None
     # a resonance frequency makes the RSS multimodal in the parameter: a finer first grid (blind case
     # 35, car body at 13 Hz: the 4-point grid's bracket 10.7-25 Hz settled at 15.6 Hz)
     maxiter = 14 if hyp.effect == "carbody_flexibility" else 9
-    return fit_1d(base, hyp, rds, maxiter=maxiter, upper=upper)
+    return fit_1d(base, hyp, rds, maxiter=maxiter, upper=upper, rows=rows)
 
 
 def bic(rss: float, n: int, k: int) -> float:

@@ -95,11 +95,13 @@ def _nrmse_bars(before: dict, after: dict):
     return fig
 
 
-def _series(rd, name, spec_before, spec_after):
+def _series(rd, name, spec_before, spec_after, rd_after=None):
+    """``rd_after``: the pass as the twin after sees it (its own rail), ``rd`` if None."""
     import matplotlib.pyplot as plt
+    rd_after = rd if rd_after is None else rd_after
     ch = rd.rec.channels[name]
     pb = predict(spec_before, rd.rec)[name]
-    pa = predict(spec_after, rd.rec)[name]
+    pa = predict(spec_after, rd_after.rec)[name]
     fig, axes = plt.subplots(1, 2, figsize=(10, 2.8))
     ref = reference_value(rd.rec, name)
     axes[0].plot(ch.time_s, ch.values - ref, lw=0.6, color="k", label="measured")
@@ -108,7 +110,7 @@ def _series(rd, name, spec_before, spec_after):
     axes[0].set_xlabel("time [s]")
     axes[0].set_ylabel(f"{name} [{GROUP_UNIT[ch.group]}]")
     axes[0].legend(fontsize=7)
-    mb, ma = model_powers(spec_before, rd)[name], model_powers(spec_after, rd)[name]
+    mb, ma = model_powers(spec_before, rd)[name], model_powers(spec_after, rd_after)[name]
     fc = rd.grid.band_center_hz
     msk = rd.masks[name]
     axes[1].semilogy(fc[msk], np.sqrt(np.nanmean(rd.pm[name], axis=0))[msk], "k.-", label="measured")
@@ -181,10 +183,11 @@ def render(diagnosis) -> str:
         gains = {n: before["per_channel"][n] - after["per_channel"].get(n, before["per_channel"][n])
                  for n in before["per_channel"]}
         show = sorted(gains, key=gains.get, reverse=True)[:2]
-        rd = rds[-1]
+        rd, rd_after = rds[-1], (ex.get("rd_after") or rds)[-1]
         for n in show:
             if n in rd.rec.channels:
-                ba.append(_img(_png(_series(rd, n, ex["base_spec"], ex["final_spec"])), f"measured vs twin {n}"))
+                ba.append(_img(_png(_series(rd, n, ex["base_spec"], ex["final_spec"], rd_after)),
+                               f"measured vs twin {n}"))
     ba.append("</section>")
     parts.append("".join(ba))
     css = ("body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}table{border-collapse:collapse;"

@@ -99,14 +99,14 @@ def screen(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> float:
     if hyp.effect == "control_delay":
         trial[0] = min(trial[0], 0.5 * stable_lag_limit(base.spec))
     sp = hyp.apply(base.spec, trial)
-    r = _safe_residual(sp, rds)
+    r = safe_residual(sp, rds)
     if r is None:
         return math.inf
     r, _ = _project(base, r)
     return float(r @ r)
 
 
-def _safe_residual(spec, rds):
+def safe_residual(spec, rds):
     """Residual vector; an unstable or failed twin gives None (treated as no fit)."""
     try:
         r = residual_vector(spec, rds)
@@ -126,7 +126,7 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
     cache = {}
 
     def res_of(sp):
-        r = _safe_residual(sp, rds)
+        r = safe_residual(sp, rds)
         return r if r is None or rows is None else r[rows]
 
     def rss(p):
@@ -173,7 +173,7 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
     sp = sp.with_(cal=tuple(float(x) for x in base.theta + d))
     profile = tuple(sorted(prof + [(float(p), float(rs))])) if prof else ()
     if rows is not None:
-        r = _safe_residual(sp, rds)
+        r = safe_residual(sp, rds)
         rs = float(r @ r) if r is not None else math.inf
         n_sims += 1
     return HypFit(hyp, np.array([p]), d, rs, sp, n_sims, profile)
@@ -221,7 +221,7 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
     def fun(z):
         n[0] += 1
         sp, th = spec_of(z)
-        r = _safe_residual(sp, rds)
+        r = safe_residual(sp, rds)
         if r is None:
             return np.full((base.r0.size if rows is None else int(rows.sum())) + 2, 1e3)
         return np.concatenate([r if rows is None else r[rows], 0.02 * th[_GAINS] / PRIOR_SIGMA])
@@ -269,7 +269,7 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
     except (ValueError, np.linalg.LinAlgError):
         return p0, d0, rss0, n[0]
     sp, th = spec_of(res.x)
-    r = _safe_residual(sp, rds)
+    r = safe_residual(sp, rds)
     if r is not None and rows is not None:
         r = r[rows]
     if r is None or float(r @ r) >= rss0:

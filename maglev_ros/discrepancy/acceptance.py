@@ -8,9 +8,9 @@
    on the training passes (effective sample size = residual count / 2 for the 50 % frame overlap).
 3. Physically plausible parameters (each catalogue entry's own bounds).
    Physics that acts on one channel group only (levitation: control, magnetic_force) is judged by
-   :func:`judge_where_it_acts`: gate 1 on that group's channels with the relative margin
-   ``min_rel_gain_local``, and the whole recording must not get worse by more than half of
-   ``min_rel_gain``.
+   :func:`judge_where_it_acts`: gates 1 and 2 on that group's channels (the caller gives the delta
+   BIC over their rows), gate 1 with the relative margin ``min_rel_gain_local``, and the whole
+   recording must not get worse by more than half of ``min_rel_gain``.
 4. Not a calibrated parameter in disguise: the calibrated parameters are re-fitted jointly with the
    extension (see :mod:`.fitting`), so a gain that a change of E, kb, kp or kv gives as well never
    survives gates 1-2; in addition an extension whose band-amplitude signature is > ``max_collinear``
@@ -82,7 +82,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
     held-out NRMSE may not rise by more than ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
     v = judge(local_before, local_after, delta_bic, plausible, collinearity,
               replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr)
-    why = tuple(f"on its channels: {r}" if r.startswith("held-out") else r for r in v.reasons)
+    why = tuple(f"on its channels: {r}" if r.startswith(("held-out", "delta BIC")) else r for r in v.reasons)
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
         why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "
                 f"{whole_after:.3f})",)

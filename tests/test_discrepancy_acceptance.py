@@ -43,6 +43,10 @@ def test_levitation_physics_without_a_gain_on_its_channels_is_rejected():
     assert not v.accepted
     assert any(r.startswith("on its channels: held-out NRMSE") for r in v.reasons)
     assert any(r.startswith("on its channels: held-out log-likelihood") for r in v.reasons)
+    # the penalised criterion is given over its channels' rows too, and says so when it fails
+    v = judge_where_it_acts(0.153, 0.120, 0.179, 0.100, +242.0, OK, 0.5, CFG, 200.0)
+    assert not v.accepted and v.reasons == ("on its channels: delta BIC +242.0 does not beat the calibrated "
+                                            "twin (needs <= -10)",)
 
 
 def _profile(x1, x2, y, grid):

@@ -8,7 +8,8 @@ magnetic_force) acts on the vehicle's channels only and is judged there (held-ou
 log-likelihood over the magnet channels and their features), provided the whole recording's
 held-out NRMSE does not rise by more than half the required gain; everything else is judged on the
 whole recording. Such physics is also fitted on the vehicle channels' residuals only, with kp and kv
-re-fitted and E, kb held (:func:`.fitting.fit_hypothesis`), and judged with the rail its own twin
+re-fitted and E, kb held (:func:`.fitting.fit_hypothesis`), judged there against the calibrated twin
+with kp, kv re-fitted on the same channels (:func:`.fitting.fit_gains`), and with the rail its own twin
 reconstructs: it changes the magnet forces and so the girder deflection the loaded -> unloaded
 reconstruction removes (on the calibrated twin's rail a correct 8 ms delay made the guideway
 sensors' held-out fit worse, 0.335 -> 0.376; on its own rail 0.335 -> 0.175).

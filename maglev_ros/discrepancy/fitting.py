@@ -8,7 +8,10 @@ calibrated parameters re-fitted by one Gauss-Newton step on the Jacobian of the 
 (variable projection, linearised in the calibrated parameters), so a change that merely mimics a
 calibrated parameter gains nothing (the scalar search starts from a coarse grid, geometric for
 scale-like parameters, and refines between the best grid point's neighbours). Multi-parameter extensions that need no simulation (sensor
-errors) are fitted by least_squares directly.
+errors) are fitted by least_squares directly. Levitation physics (control, magnetic force) is fitted on
+the vehicle channels' rows of the residual vector only, with kp and kv re-fitted and E, kb held
+(the guideway sensors' own model error otherwise moves it); its null model is the calibrated twin
+with kp, kv re-fitted on the same rows (:func:`fit_gains`).
 """
 from __future__ import annotations
 

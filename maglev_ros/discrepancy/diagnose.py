@@ -379,7 +379,11 @@ class Diagnoser:
                 continue
             reasons = v.reasons
             if hf.hyp.effect == "control_delay" and not v.accepted and len(hf.profile) >= 3:
-                spread = profile_spread(hf.profile, n_eff)
+                # the profile's RSS is over the rows the delay was fitted on (its channels)
+                n_prof = n_eff
+                if hf.hyp.category in VEHICLE_WIDE and where(hf.hyp):
+                    n_prof = max(10, int(residual_rows(base.spec, rd_train, where(hf.hyp)).sum()) // 2)
+                spread = profile_spread(hf.profile, n_prof)
                 if spread < IDENTIFIABLE_LLR:
                     q = [x for x, _ in hf.profile]
                     reasons = reasons + (

@@ -86,7 +86,8 @@ class HypFit:
     spec: ModelSpec
     n_sims: int
     # (parameter value, training RSS with kp, kv re-fitted there): the profile a joint refinement
-    # started from (control_delay), empty otherwise
+    # started from (control_delay), empty otherwise; for levitation physics the RSS is over the
+    # vehicle channels' rows it was fitted on
     profile: tuple[tuple[float, float], ...] = ()
 
     @property

@@ -126,7 +126,7 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
     """Bounded scalar search over the extension parameter; calibrated parameters projected by one
     Gauss-Newton step and, when that step is not small, re-simulated at the projected values.
     ``rows``: fit on those rows of the residual vector only (the channels the extension acts on);
-    the returned RSS is over every row, as the penalised criterion compares it with the base fit's."""
+    the returned RSS is over every row (the whole training misfit)."""
     cache = {}
 
     def res_of(sp):

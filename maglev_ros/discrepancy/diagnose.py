@@ -74,6 +74,15 @@ class DiagnoseConfig:
     fit_every_effect: bool = True
 
 
+@dataclass(frozen=True)
+class _Null:
+    """Measures of the null model of levitation physics over its channels (see ``vehicle_null``)."""
+    rss_train: float
+    n_train: int                       # effective count of its training rows
+    heldout_nrmse: float
+    heldout: tuple[float, int]         # (held-out RSS, effective count)
+
+
 @dataclass(frozen=True, eq=False)
 class Diagnosis:
     report: dict
@@ -195,12 +204,12 @@ class Diagnoser:
         def held_llr(spec, chans=None, rds=None, ref=None):
             """Held-out log-likelihood ratio against the calibrated twin (over ``chans`` and their
             features only, when given; ``rds``: the held-out passes with the extended twin's own rail;
-            ``ref``: (spec, held-out passes) of another reference model)."""
-            key = (frozenset(chans) if chans else None, None if ref is None else id(ref[0]))   # (kept in nulls)
-            if key not in test0:
-                r0 = residual_vector(*(ref or (base.spec, rd_test)), chans)
+            ``ref``: (held-out RSS, effective count) of another reference model over ``chans``)."""
+            key = frozenset(chans) if chans else None
+            if ref is None and key not in test0:
+                r0 = residual_vector(base.spec, rd_test, chans)
                 test0[key] = (float(r0 @ r0), max(10, r0.size // 2))
-            rss0, n = test0[key]
+            rss0, n = ref or test0[key]
             r = residual_vector(spec, rd_test if rds is None else rds, chans)
             return 0.5 * n * math.log(max(rss0, 1e-300) / max(float(r @ r), 1e-300))
         local_ev: dict[int, tuple[float, float]] = {}   # id(HypFit) -> held-out NRMSE on its channels
@@ -210,16 +219,18 @@ class Diagnoser:
         rebuild = cfg.irregularity and any(p.irregularity is not None for p in passes)
         nulls: dict = {}
 
-        def vehicle_null(loc):
-            """(spec, training passes, held-out passes) of the calibrated twin with kp, kv re-fitted on
-            the rows of ``loc`` (with its own rail): what levitation physics fitted there must beat."""
+        def vehicle_null(loc) -> _Null:
+            """The calibrated twin with kp, kv re-fitted on the rows of ``loc`` (with its own rail):
+            what levitation physics fitted there must beat; its measures over ``loc``, computed once."""
             key = frozenset(loc)
             if key not in nulls:
                 sp = fit_gains(base, rd_train, residual_rows(base.spec, rd_train, loc))
                 tr, te = rd_train, rd_test
                 if rebuild:
                     _, _, tr, te = prepared(sp, floor_spec=base.spec, log=None)
-                nulls[key] = (sp, tr, te)
+                r_tr, r_te = residual_vector(sp, tr, loc), residual_vector(sp, te, loc)
+                nulls[key] = _Null(float(r_tr @ r_tr), max(10, r_tr.size // 2), fit_report(sp, te, loc)[0],
+                                   (float(r_te @ r_te), max(10, r_te.size // 2)))
             return nulls[key]
 
         def where(h):
@@ -237,7 +248,7 @@ class Diagnoser:
             except Exception as exc:
                 tried.append({"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"})
                 continue
-            rd_test_h = rd_test
+            rd_train_h, rd_test_h = rd_train, rd_test
             dbic = None
             if rebuild and h.category in VEHICLE_WIDE:
                 # levitation physics changes the magnet forces and so the girder deflection that the
@@ -246,10 +257,9 @@ class Diagnoser:
                 # 0.335 -> 0.376 on the calibrated twin's rail, guideway G3A 0.39 -> 0.80, but 0.335 ->
                 # 0.175 on its own; the calibrated twin on that rail: 0.416, so the rail alone is no gain);
                 # its training misfit too
-                _, own, own_train, own_test = prepared(hf.spec, floor_spec=base.spec, log=None)
+                _, own, rd_train_h, rd_test_h = prepared(hf.spec, floor_spec=base.spec, log=None)
                 own_rail[id(hf)] = own
-                rd_test_h = own_test
-                r_own = safe_residual(hf.spec, own_train)
+                r_own = safe_residual(hf.spec, rd_train_h)
                 hf.rss = float(r_own @ r_own) if r_own is not None else math.inf
             null = None
             if h.category in VEHICLE_WIDE and where(h) and np.isfinite(hf.rss):
@@ -258,10 +268,8 @@ class Diagnoser:
                 # the recording is held to "not worse" on held-out data (over every row, a 10 % headroom
                 # over the peak current demand gave delta BIC +242 from the guideway sensors, blind 28)
                 null = vehicle_null(where(h))
-                r_l0 = residual_vector(null[0], null[1], where(h))
-                r_l = residual_vector(hf.spec, own_rail[id(hf)][:1] if id(hf) in own_rail else rd_train, where(h))
-                n_l = max(10, r_l.size // 2)
-                dbic = bic(float(r_l @ r_l), n_l, hf.k) - bic(float(r_l0 @ r_l0), n_l, 0)
+                r_l = residual_vector(hf.spec, rd_train_h, where(h))
+                dbic = bic(float(r_l @ r_l), null.n_train, hf.k) - bic(null.rss_train, null.n_train, 0)
             if dbic is None:
                 dbic = bic(hf.rss, n_eff, hf.k) - bic0
             if dbic > 0 and h.effect == "sensor_error":
@@ -275,8 +283,8 @@ class Diagnoser:
             # that channel) passed every gate, so acceptance stays on the whole recording
             loc = where(h)
             if loc:
-                ref = (null[0], null[2]) if null is not None else (base.spec, rd_test)
-                local_ev[id(hf)] = (fit_report(*ref, loc)[0], fit_report(hf.spec, rd_test_h, loc)[0])
+                before = null.heldout_nrmse if null is not None else fit_report(base.spec, rd_test, loc)[0]
+                local_ev[id(hf)] = (before, fit_report(hf.spec, rd_test_h, loc)[0])
             col = 0.0
             if h.needs_sim:
                 jcol = residual_vector(h.apply(base.spec, np.array(h.trial)), rd_train) - base.r0
@@ -288,7 +296,7 @@ class Diagnoser:
                 # the vehicle channels' held-out NRMSE 0.179 -> 0.121 but the whole 0.153 -> 0.150)
                 v = judge_where_it_acts(held_before, held_after, *local_ev[id(hf)], dbic, h.plausible(hf.params),
                                         col, cfg.acceptance,
-                                        held_llr(hf.spec, loc, rd_test_h, (null[0], null[2]) if null is not None else None))
+                                        held_llr(hf.spec, loc, rd_test_h, null.heldout if null is not None else None))
             else:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))
@@ -380,10 +388,8 @@ class Diagnoser:
             reasons = v.reasons
             if hf.hyp.effect == "control_delay" and not v.accepted and len(hf.profile) >= 3:
                 # the profile's RSS is over the rows the delay was fitted on (its channels)
-                n_prof = n_eff
-                if hf.hyp.category in VEHICLE_WIDE and where(hf.hyp):
-                    n_prof = max(10, int(residual_rows(base.spec, rd_train, where(hf.hyp)).sum()) // 2)
-                spread = profile_spread(hf.profile, n_prof)
+                null = nulls.get(frozenset(where(hf.hyp) or ()))
+                spread = profile_spread(hf.profile, null.n_train if null is not None else n_eff)
                 if spread < IDENTIFIABLE_LLR:
                     q = [x for x, _ in hf.profile]
                     reasons = reasons + (

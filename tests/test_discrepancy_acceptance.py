@@ -49,6 +49,21 @@ def test_levitation_physics_without_a_gain_on_its_channels_is_rejected():
                                             "twin (needs <= -10)",)
 
 
+def test_levitation_physics_names_its_null_model_and_what_would_separate_them():
+    # judged against the calibrated twin with kp, kv re-fitted on its channels (the null of levitation
+    # physics): a rejection names that reference, and when the held-out gain is not clear, what the
+    # gains absorbed and which evidence would tell them apart
+    kw = dict(reference="the gains-refitted twin", absorbed_by="kp, kv", separated_by="a faster pass")
+    v = judge_where_it_acts(0.114, 0.110, 0.053, 0.049, +5.0, OK, 0.5, CFG, 3.0, **kw)
+    assert not v.accepted
+    assert "on its channels: delta BIC +5.0 does not beat the gains-refitted twin (needs <= -10)" in v.reasons
+    assert v.reasons[-1] == ("on the held-out pass kp, kv explain nearly as much: these recordings cannot "
+                             "separate them (a faster pass would)")
+    # a clear local gain that fails elsewhere does not blame the gains
+    v = judge_where_it_acts(0.114, 0.135, 0.053, 0.020, -50.0, OK, 0.5, CFG, 80.0, **kw)
+    assert not v.accepted and not any("cannot separate" in r for r in v.reasons)
+
+
 def _profile(x1, x2, y, grid):
     """RSS of y ~ a x1 + b x2 with b re-fitted at each a (the profile of a)."""
     out = []

@@ -56,7 +56,8 @@ class Verdict:
 
 def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausible: tuple[bool, str],
           collinearity: float, cfg: AcceptanceConfig = AcceptanceConfig(),
-          heldout_llr: float | None = None) -> Verdict:
+          heldout_llr: float | None = None, reference: str = "the calibrated twin") -> Verdict:
+    """``reference``: the simpler model the BIC is compared with, as the reasons name it."""
     why = []
     if heldout_llr is not None and heldout_llr < cfg.min_heldout_llr:
         why.append(f"held-out log-likelihood gain {heldout_llr:.1f} is below {cfg.min_heldout_llr:g}")
@@ -65,7 +66,7 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
         why.append(f"held-out NRMSE {heldout_before:.3f} -> {heldout_after:.3f} is not a clear improvement "
                    f"(needs >= {cfg.min_rel_gain * 100:.0f} % and >= {cfg.min_abs_gain})")
     if not delta_bic <= cfg.max_delta_bic:
-        why.append(f"delta BIC {delta_bic:+.1f} does not beat the calibrated twin (needs <= {cfg.max_delta_bic:g})")
+        why.append(f"delta BIC {delta_bic:+.1f} does not beat {reference} (needs <= {cfg.max_delta_bic:g})")
     if not plausible[0]:
         why.append(plausible[1])
     if collinearity > cfg.max_collinear:
@@ -76,13 +77,22 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
 
 def judge_where_it_acts(whole_before: float, whole_after: float, local_before: float, local_after: float,
                         delta_bic: float, plausible: tuple[bool, str], collinearity: float,
-                        cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None) -> Verdict:
+                        cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None,
+                        reference: str = "the calibrated twin", absorbed_by: str | None = None,
+                        separated_by: str | None = None) -> Verdict:
     """:func:`judge` with the held-out gates on the channels the extension acts on (``local_*``,
     ``local_llr``; relative margin ``min_rel_gain_local``) and one more: the whole recording's
-    held-out NRMSE may not rise by more than ``min_rel_gain / 2``. The verdict carries the whole-recording NRMSE (comparable across effects)."""
+    held-out NRMSE may not rise by more than ``min_rel_gain / 2``. The verdict carries the
+    whole-recording NRMSE (comparable across effects). ``reference``: the simpler model the local
+    measures compare with; ``absorbed_by``: what that reference re-fits, said when the local held-out
+    gain is not clear (the data could not separate the extension from it), with ``separated_by``: the
+    evidence that would."""
     v = judge(local_before, local_after, delta_bic, plausible, collinearity,
-              replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr)
+              replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr, reference)
     why = tuple(f"on its channels: {r}" if r.startswith(("held-out", "delta BIC")) else r for r in v.reasons)
+    if absorbed_by and any(r.startswith("held-out") for r in v.reasons):
+        why += (f"on the held-out pass {absorbed_by} explain nearly as much: these recordings cannot separate "
+                f"them" + (f" ({separated_by} would)" if separated_by else ""),)
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
         why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "
                 f"{whole_after:.3f})",)

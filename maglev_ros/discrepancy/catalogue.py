@@ -33,6 +33,12 @@ EFFECTS = {"bearing_stiffness": "boundary_condition", "control_delay": "control"
 # categories of physics that act on the vehicle's channels only: fitted and judged there
 # (fitting.fit_hypothesis, diagnose.Diagnoser.fit)
 VEHICLE_WIDE = ("control", "magnetic_force")
+# what separates levitation physics from re-fitted control gains (kp, kv), its null model: said in a
+# rejection when the gains explain the held-out pass nearly as well
+SEPARATED_BY = {
+    "control_delay": "a recorded magnet current, or a faster pass that excites the control above 20 Hz",
+    "magnet_nonlinearity": "a pass with a clearly larger current demand (faster, or over a rougher stretch)",
+}
 
 
 @dataclass(frozen=True, eq=False)

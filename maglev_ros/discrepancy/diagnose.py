@@ -294,9 +294,13 @@ class Diagnoser:
                 # gain is judged there, and the rest of the recording must not get worse (whole-recording
                 # held-out NRMSE was dominated by the guideway sensors: a 6 ms delay fitted as 2-4 ms cut
                 # the vehicle channels' held-out NRMSE 0.179 -> 0.121 but the whole 0.153 -> 0.150)
+                gains = dict(reference="the calibrated twin with kp, kv re-fitted there",
+                             absorbed_by="the levitation gains kp, kv re-fitted on these channels",
+                             separated_by=cat.SEPARATED_BY.get(h.effect)) if null is not None else {}
                 v = judge_where_it_acts(held_before, held_after, *local_ev[id(hf)], dbic, h.plausible(hf.params),
                                         col, cfg.acceptance,
-                                        held_llr(hf.spec, loc, rd_test_h, null.heldout if null is not None else None))
+                                        held_llr(hf.spec, loc, rd_test_h, null.heldout if null is not None else None),
+                                        **gains)
             else:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))

@@ -57,7 +57,7 @@ def test_levitation_physics_names_its_null_model_and_what_would_separate_them():
     v = judge_where_it_acts(0.114, 0.110, 0.053, 0.049, +5.0, OK, 0.5, CFG, 3.0, **kw)
     assert not v.accepted
     assert "on its channels: delta BIC +5.0 does not beat the gains-refitted twin (needs <= -10)" in v.reasons
-    assert v.reasons[-1] == ("on the held-out pass kp, kv explain nearly as much: these recordings cannot "
+    assert v.reasons[-1] == ("on the held-out data kp, kv explain nearly as much: these recordings cannot "
                              "separate them (a faster pass would)")
     # a clear local gain that fails elsewhere does not blame the gains
     v = judge_where_it_acts(0.114, 0.135, 0.053, 0.020, -50.0, OK, 0.5, CFG, 80.0, **kw)

@@ -8,7 +8,8 @@ projection.
 import numpy as np
 import pytest
 
-from maglev_ros.discrepancy.evaluate import prepare, residual_rows, residual_vector
+from maglev_ros.discrepancy.evaluate import (Selection, _fit_items, levitation_items, prepare, residual_rows,
+                                             residual_vector)
 from maglev_ros.discrepancy.fitting import _GAINS, PRIOR_SIGMA, BaseFit, _project
 from maglev_ros.discrepancy.model import base_spec
 
@@ -39,6 +40,44 @@ def test_residual_rows_are_the_items_of_those_channels(pass_rd):
     # guideway channels are not among the rows
     rows_g = residual_rows(spec, rds, ["G1A"])
     assert not np.any(rows & rows_g)
+
+
+def test_levitation_items_are_the_magnets_own_bands_and_transmissibilities(pass_rd):
+    spec, rds = pass_rd
+    kinds: list = []
+    items = _fit_items(spec, rds[0], names_out=kinds)
+    # reference: the items listed one by one, kept by kind and by channel names
+    want = [am.size for (am, _, _), (kind, nm, _) in zip(items, kinds)
+            if kind in ("bands", "transmissibility") and set(nm) <= set(VEHICLE)]
+    assert {k for k, _, _ in kinds} >= {"bands", "transmissibility", "level", "body"}
+    rows = residual_rows(spec, rds, levitation_items(VEHICLE))
+    assert rows.sum() == sum(want)
+    assert residual_vector(spec, rds, levitation_items(VEHICLE)).size == sum(want)
+    # the car-body ratios and the gaps' frame means are among the plain channel selection's rows
+    wide = residual_rows(spec, rds, VEHICLE)
+    assert np.all(wide[rows]) and wide.sum() > rows.sum()
+    assert np.array_equal(wide, residual_rows(spec, rds, Selection(frozenset(VEHICLE))))
+
+
+def test_a_frame_selection_splits_the_rows_by_frame(pass_rd):
+    spec, rds = pass_rd
+    rd = rds[0]
+    lev = levitation_items(VEHICLE)
+    n = rd.grid.n_frames
+    first = np.arange(n) < n // 2
+    a = residual_rows(spec, rds, lev.on_frames(rd, first))
+    b = residual_rows(spec, rds, lev.on_frames(rd, ~first))
+    full = residual_rows(spec, rds, lev)
+    assert a.any() and b.any()
+    assert not np.any(a & b) and np.array_equal(a | b, full)
+    # the restricted vector holds exactly those rows; every frame selected is the plain selection
+    assert residual_vector(spec, rds, lev.on_frames(rd, first)).size == a.sum()
+    assert np.array_equal(residual_rows(spec, rds, lev.on_frames(rd, np.ones(n, bool))), full)
+    # reference for the split: each row's frame, from the items' own frame-major layout
+    kinds: list = []
+    items = _fit_items(spec, rd, names_out=kinds)
+    for (am, _, _), (kind, nm, fr) in zip(items, kinds):
+        assert fr.size == am.size and np.all(np.diff(fr) >= 0)
 
 
 def test_projection_on_vehicle_rows_refits_the_gains_only():

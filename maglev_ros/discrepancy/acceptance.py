@@ -10,7 +10,11 @@
    Physics that acts on one channel group only (levitation: control, magnetic_force) is judged by
    :func:`judge_where_it_acts`: gates 1 and 2 on that group's channels (the caller gives the delta
    BIC over their rows), gate 1 with the relative margin ``min_rel_gain_local``, and the whole
-   recording must not get worse by more than half of ``min_rel_gain``.
+   recording must not get worse by more than half of ``min_rel_gain``. The caller (diagnose) judges
+   levitation physics on the magnets' own items (:func:`.evaluate.levitation_items`) against the
+   calibrated twin with kp, kv re-fitted on the same rows, and holds amplitude-dependent physics
+   (current saturation) out on the second half of the training pass as well (the slower passes ask
+   for too little current to show it).
 4. Not a calibrated parameter in disguise: the calibrated parameters are re-fitted jointly with the
    extension (see :mod:`.fitting`), so a gain that a change of E, kb, kp or kv gives as well never
    survives gates 1-2; in addition an extension whose band-amplitude signature is > ``max_collinear``
@@ -91,7 +95,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
               replace(cfg, min_rel_gain=cfg.min_rel_gain_local), local_llr, reference)
     why = tuple(f"on its channels: {r}" if r.startswith(("held-out", "delta BIC")) else r for r in v.reasons)
     if absorbed_by and any(r.startswith("held-out") for r in v.reasons):
-        why += (f"on the held-out pass {absorbed_by} explain nearly as much: these recordings cannot separate "
+        why += (f"on the held-out data {absorbed_by} explain nearly as much: these recordings cannot separate "
                 f"them" + (f" ({separated_by} would)" if separated_by else ""),)
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
         why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "

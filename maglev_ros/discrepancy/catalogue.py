@@ -33,11 +33,15 @@ EFFECTS = {"bearing_stiffness": "boundary_condition", "control_delay": "control"
 # categories of physics that act on the vehicle's channels only: fitted and judged there
 # (fitting.fit_hypothesis, diagnose.Diagnoser.fit)
 VEHICLE_WIDE = ("control", "magnetic_force")
+# physics whose effect grows with the excitation (current saturation at the demand peaks): held out
+# at the training amplitude too, on the second half of the training pass (on the slower pass alone a
+# 1.2 x saturation cut the true twin's magnet misfit 4 %, on the fast pass 16 %, tune case 28)
+AMPLITUDE_DEPENDENT = ("magnet_nonlinearity",)
 # what separates levitation physics from re-fitted control gains (kp, kv), its null model: said in a
 # rejection when the gains explain the held-out pass nearly as well
 SEPARATED_BY = {
     "control_delay": "a recorded magnet current, or a faster pass that excites the control above 20 Hz",
-    "magnet_nonlinearity": "a pass with a clearly larger current demand (faster, or over a rougher stretch)",
+    "magnet_nonlinearity": "a pass with a clearly larger current demand, faster or over a rougher stretch,",
 }
 
 
@@ -245,8 +249,11 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
     """Magnet current saturation (chopper/core): the force sees I0 + L tanh((I - I0) / L).
 
     Parameter: p = L / demand_a, the saturation current headroom L relative to the calibrated
-    twin's largest current excursion ``demand_a`` on the training pass (so one bound fits every
-    line and speed); the twin with p near 1 loses levitation, above ~4 saturation is invisible.
+    twin's largest current excursion ``demand_a`` on the training pass where it is compared (so one
+    bound fits every line and speed); above ~4 saturation is invisible. Below 1 the twin's peaks are
+    compressed, not lost: that demand carries the reconstructed rail's errors (1.25 x the true peak
+    demand, tune case 28), so a true headroom of 1.1-1.2 sits near 0.9 of it; a twin that loses
+    levitation fails its simulation and is no fit.
     A smooth limit keeps the linearised magnet (slope 1 at the static current), so it is not a
     change of the calibrated gains in disguise: it only compresses large current demands."""
     demand = max(float(demand_a), 1e-6)
@@ -258,8 +265,9 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
         if p[0] > 3.0:
             return False, (f"fitted current headroom {p[0]:.1f} times the largest demand means the current "
                            f"never saturates")
-        if p[0] < 1.05:
-            return False, f"fitted current headroom {p[0]:.2f} times the largest demand would lose levitation"
+        if p[0] < 0.55:
+            return False, (f"fitted current headroom {p[0]:.2f} times the largest demand: the magnets could not "
+                           f"have followed this rail")
         return True, ""
 
     def desc(p, sp):
@@ -270,7 +278,7 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
                 f"vary more than the twin predicts.",
                 {"current_headroom_a": L, "static_current_a": float(static_current_a),
                  "headroom_over_peak_demand": float(p[0])})
-    return Hypothesis("magnet_nonlinearity", "magnet_nonlinearity", ("headroom_over_peak_demand",), (1.02,),
+    return Hypothesis("magnet_nonlinearity", "magnet_nonlinearity", ("headroom_over_peak_demand",), (0.5,),
                       (4.0,), (1.5,), apply,
                       location={"position_m": None, "span": None, "channels": vehicle_channels},
                       plausible=plaus, describe=desc, log_search=True)

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from .catalogue import VEHICLE_WIDE, Hypothesis
-from .evaluate import RecData, residual_rows, residual_vector
+from .evaluate import RecData, levitation_items, residual_rows, residual_vector
 from .model import CAL_PARAMS, ModelSpec
 
 PRIOR_SIGMA = 0.5
@@ -360,7 +360,9 @@ def fit_ambient(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
     return _fit_cheap(base, hyp, rds, np.ones(2), z0, (list(hyp.lower), list(hyp.upper)))
 
 
-def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
+def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=None) -> HypFit:
+    """Fit ``hyp`` on ``rds`` with the calibrated parameters re-fitted. ``select``: for levitation
+    physics, the items (and frames) it is fitted on, :func:`.evaluate.levitation_items` by default."""
     if hyp.effect == "sensor_error":
         return fit_sensor(base, hyp, rds)
     if hyp.effect == "ambient_excitation":
@@ -372,7 +374,7 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit
     # although the true delay and gains improved the whole held-out fit, 0.137 -> 0.128)
     rows = None
     if hyp.category in VEHICLE_WIDE and hyp.location.get("channels"):
-        rows = residual_rows(base.spec, rds, hyp.location["channels"])
+        rows = residual_rows(base.spec, rds, select or levitation_items(hyp.location["channels"]))
         if rows.size != base.r0.size or not rows.any():
             rows = None
     # a resonance frequency makes the RSS multimodal in the parameter: a finer first grid (blind case

@@ -178,3 +178,25 @@ def test_user_errors_name_the_channel():
     with pytest.raises(UserError, match="M9A"):
         InertialProfiler().fit(rec.accel, rec.gap, rec.position, rec.magnet_offsets_m,
                                channel_pairs={1: ("M9A", "M1G")})
+
+
+def test_magnets_are_blended_where_their_coverage_changes():
+    """Two magnets whose profiles differ by a constant c (a long-wave error of one of them), the
+    second starting 20 m later: the plain mean jumps by c / 2 where it starts; the blended mean must
+    go from the first magnet to the mean of both smoothly: its error is c w / (1 + w) with w the
+    second magnet's raised-cosine weight over ``ramp`` bins, so no step exceeds c * pi / (2 ramp)
+    (w' <= pi / (2 ramp)), and it is the first magnet alone before and the mean of both after the ramp."""
+    from maglev_ros.irregularity.profile import _coverage_weights
+    n, start, ramp, c = 3000, 1000, 400, 4e-4
+    rail = 1e-3 * np.sin(np.arange(n) / 150.0)
+    P = np.vstack([rail, rail + c])
+    P[1, :start] = np.nan
+    W = _coverage_weights(np.isfinite(P), ramp)
+    mean = np.sum(W * np.nan_to_num(P), axis=0) / np.sum(W, axis=0)
+    err = mean - rail
+    assert np.max(np.abs(np.diff(err))) <= c * np.pi / (2 * ramp) * 1.01
+    assert np.allclose(err[:start], 0.0, atol=1e-15)                 # the first magnet alone
+    assert np.allclose(err[start + ramp:n - ramp], c / 2, rtol=1e-12)  # both, equally weighted
+    # the plain mean's step, for contrast
+    plain = np.nanmean(P, axis=0) - rail
+    assert abs(plain[start] - plain[start - 1]) == pytest.approx(c / 2)

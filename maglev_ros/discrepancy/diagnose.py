@@ -262,13 +262,11 @@ class Diagnoser:
                     return lev.on_frames(rd_train[0], halves[lev][0 if part == "fit" else 1])
             return lev
 
-        def split_in_time(h) -> bool:
-            return h.category in VEHICLE_WIDE and isinstance(where(h), Selection) and bool(where(h).frames)
-
         def held_of(h, tr, te):
             """The held-out recordings of ``h``'s measures where it acts: the other passes, and the
             training pass too when it is split in time (its held-out frames: ``where(h)``)."""
-            return [tr[0]] + list(te) if split_in_time(h) and not same_heldout else te
+            split = isinstance(sel := where(h), Selection) and bool(sel.frames)
+            return [tr[0]] + list(te) if split and not same_heldout else te
 
         def null_key(h):
             return (_key(where(h, "fit")), _key(where(h)))

@@ -557,7 +557,7 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
     P = np.vstack(profs)
     nmag = np.sum(np.isfinite(P), axis=0)
     W = (_coverage_weights(np.isfinite(P), max(1, int(round(0.25 * lam_max / dx))))
-         if getattr(cfg, "blend_coverage", False) else np.isfinite(P).astype(float))
+         if cfg.blend_coverage else np.isfinite(P).astype(float))
     with _w.catch_warnings():
         _w.simplefilter("ignore", RuntimeWarning)
         mean = np.sum(W * np.nan_to_num(P), axis=0) / np.sum(W, axis=0)

@@ -132,6 +132,10 @@ def test_gains_within_5pct_where_identifiable_and_std_covers_error(result):
         if not set(ex) <= set(sym) or not set(ex) & {"kp", "kv", "ka"}:
             continue
         n_mag += 1
+        # the printed expression IS the combination: its value follows from the reported values
+        fitted = {"kp": p["kp_a_per_m"]["value"], "kv": p["kv_a_s_per_m"]["value"],
+                  "ka": p["ka_a_s2_per_m"]["value"], "I0": p["static_current_a"]["value"]}
+        assert c["value"] == pytest.approx(float(np.prod([fitted[k] ** v for k, v in ex.items()])), rel=1e-9), c
         truth = float(np.prod([sym[k] ** v for k, v in ex.items()]))
         assert abs(np.log(c["value"] / truth)) < 3 * c["std"] / c["value"] + 2e-3, (c, truth)
         assert abs(c["value"] / truth - 1) < 0.05, (c, truth)       # identifiable combinations: within 5 %

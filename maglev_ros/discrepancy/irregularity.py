@@ -53,13 +53,11 @@ def sensor_delay_s(metadata) -> float:
 
 def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, spacing_m: float = 0.02,
                            margin_m: float = 1.0, max_iterations: int = 3, denoise: bool = True,
-                           blend_coverage: bool = True, log=None, **profile_kw) -> Recording:
+                           log=None, **profile_kw) -> Recording:
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
     with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
     what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets).
-    ``blend_coverage``: the magnets' weights ramp where their coverage changes (a plain mean stepped
-    there and gave the twin 3 A current spikes, :mod:`maglev_ros.irregularity.profile`).
     Further keywords (``band_factor``, ``trim_wavelengths``, ``edge_s``, ...) go to
     :func:`~maglev_ros.irregularity.twin_input.profile_for_twin` and its profiler."""
     from maglev_ros.contract import metadata_from_dict
@@ -84,7 +82,7 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
         ti = profile_for_twin(acc, gap, pos, md, spec.effective_config(), spec.effective_spans(),
                               highpass_hz=highpass_hz, spacing_m=spacing_m, channel_pairs=pairs,
                               sensor_delay_s=tau, max_iterations=max_iterations, dt_max_s=spec.dt_max_s,
-                              blend_coverage=blend_coverage, **profile_kw)
+                              **profile_kw)
     except (UserError, ValueError, np.linalg.LinAlgError) as exc:
         say(f"{rec.source}: irregularity reconstruction failed ({exc}): the twin runs on a perfect guideway")
         return rec

@@ -47,8 +47,8 @@ mean from the spread between magnets (NaN where fewer than two magnets cover a p
 between magnets is reported as pairwise correlation of their band-passed profiles. Where the set of
 magnets covering a point changes (the ends of each magnet's stretch: the rear magnet starts its
 stretch one vehicle length later) each magnet's weight ramps in and out over a quarter of the
-longest wavelength (raised cosine, :func:`_coverage_weights`; ``blend_coverage``, used for the
-diagnosing twin's rail): the plain mean jumped there by half
+longest wavelength (raised cosine, :func:`_coverage_weights`; ``blend_coverage``, on by default): the plain mean
+jumped there by half
 the magnets' long-wave difference (240 um at 20 m behind the start of the stretch, discrepancy tune
 case 33), and every twin magnet crossing that step drew a 3 A current spike.
 
@@ -192,9 +192,7 @@ class InertialProfiler:
     trim_wavelengths : profile dropped at both ends of each spatial stretch, in units of
         ``max_wavelength_m`` (the band-pass's edge transient decays over about that length).
     blend_coverage : ramp each magnet's weight in and out where the set of magnets covering a
-        point changes (see the module notes); off by default: on the slow (25 km/h, 3-4.5 m band)
-        pass of the model-updating test it moved a magnet-gain combination from -0.35 % to +1.6 %
-        of the truth (std 0.37 %), not yet understood; the diagnosing twin's rail uses it.
+        point changes (see the module notes); False gives the plain mean (for comparison only).
     """
 
     def __init__(self, highpass_hz: float = 0.2, spacing_m: float = 0.25,
@@ -204,7 +202,7 @@ class InertialProfiler:
                  stop_speed_mps: float = 1.0, filter_order: int = DEFAULT_FILTER_ORDER,
                  edge_s: float | None = None, speed_percentile: float = 5.0,
                  bias_sigma: float = 5.0, bias_floor_mps2: float = 2e-3,
-                 trim_wavelengths: float = 1.0, blend_coverage: bool = False):
+                 trim_wavelengths: float = 1.0, blend_coverage: bool = True):
         if not highpass_hz > 0:
             raise UserError(f"highpass_hz: expected > 0 Hz, got {highpass_hz}")
         if not spacing_m > 0:

@@ -381,7 +381,7 @@ MAGNET_COMBINATIONS = (("kp/I0", (1.0, 0.0, 0.0, -1.0)), ("kv/I0", (0.0, 1.0, 0.
 
 
 def _expression(c: np.ndarray, names: Sequence[str]) -> str:
-    parts = [f"{SYMBOLS.get(n, n)}^{v:.2f}" for n, v in zip(names, c) if abs(v) >= 0.005]
+    parts = [f"{SYMBOLS.get(n, n)}^{v:.2f}" for n, v in zip(names, c) if round(abs(v), 2) > 0]
     return " ".join(parts)
 
 
@@ -534,8 +534,10 @@ class MagnetLayer:
         w, V = np.linalg.eigh(cov)
         for k in range(space.dim):                 # principal log-combinations, best determined first
             c = V[:, k] / V[np.argmax(np.abs(V[:, k])), k]
-            c = c / np.max(np.abs(c))
-            r = float(np.sqrt(max(w[k], 0.0)))
+            # the exponents as printed (2 decimals) ARE the combination: value and std follow them (with
+            # kp ~ 1e4 and ka ~ 0.3, an exponent off by 0.005 moves the value by ~1 %)
+            c = np.round(c / np.max(np.abs(c)), 2)
+            r = float(np.sqrt(max(c @ cov @ c, 0.0)))
             val = float(np.prod(values ** c))
             combos.append(Combination(_expression(c, space.names), tuple(map(float, c)) + (0.0,), val, r * val,
                                       r <= self.max_rel_std))

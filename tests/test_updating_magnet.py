@@ -101,3 +101,25 @@ def test_fallback_profile_with_non_overlapping_magnets_warns_nothing():
     inside = (xg > 1.0) & (xg < 9.0)
     truth = 1e-3 * np.sin(2 * np.pi * xg[inside] / lam)
     assert np.corrcoef(r[inside], truth)[0, 1] > 0.99
+
+
+def test_compare_band_ends_where_the_measurement_sinks_into_its_noise_floor():
+    """Accelerations with content up to a known cut (30 Hz, brick-wall: a rail with no waves shorter
+    than v / 30 Hz) plus white sensor noise 1e-3 of it: the band must end at the cut, within the
+    Welch resolution and Hann-window leakage (a 70 dB step leaks to 10 x the floor over ~7 bins of
+    ~1 Hz: < 8 Hz); with content up to the band's end
+    (cut at 200 Hz) the band is kept; too short a record keeps the band."""
+    from maglev_ros.updating.magnet_layer import above_noise_hz
+    rng = np.random.default_rng(3)
+    fs, n = 1000.0, 8000
+
+    def cut(f_cut):
+        X = np.fft.rfft(rng.standard_normal((n, 4)), axis=0)
+        X[np.fft.rfftfreq(n, 1 / fs) > f_cut] = 0.0
+        x = np.fft.irfft(X, n, axis=0)
+        return x + 1e-3 * np.std(x) * rng.standard_normal(x.shape)
+    noisy = cut(30.0)
+    f_hi = above_noise_hz(noisy, fs, (1.0, 112.5))
+    assert 30.0 <= f_hi <= 38.0, f_hi
+    assert above_noise_hz(cut(200.0), fs, (1.0, 112.5)) == 112.5
+    assert above_noise_hz(noisy[:40], fs, (1.0, 112.5)) == 112.5

@@ -90,12 +90,10 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
     info["channel_pairs"] = {int(k): list(v) for k, v in pairs.items()}
     x, r = ti.as_twin_input()
     if denoise:
-        from maglev_ros.irregularity.denoise import apply_gain, coherent_gain
-        g = coherent_gain(ti.result.magnet_profiles_m, ti.spacing_m)
+        x, r, g = ti.denoised_twin_input()
         if g is None:
             say(f"{rec.source}: one magnet (or too short a common stretch): the irregularity is not denoised")
         else:
-            r = apply_gain(r, ti.spacing_m, g)
             info["denoise"] = g.to_dict()
     return replace(rec, irregularity=(x, r), irregularity_valid_m=ti.valid_range_m,
                    irregularity_margin_m=float(ti.taper_m + margin_m), sensor_delay_s=tau,

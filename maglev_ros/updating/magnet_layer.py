@@ -99,6 +99,39 @@ def _bandpass(x: np.ndarray, fs_hz: float, band_hz) -> np.ndarray:
     return signal.sosfiltfilt(sos, x - x.mean(axis=0), axis=0)
 
 
+def above_noise_hz(accel_mps2: np.ndarray, fs_hz: float, band_hz, snr: float = 10.0) -> float:
+    """Upper band edge where the measured accelerations stand above their noise floor: the end of
+    the contiguous run of frequencies, around the spectrum's peak inside ``band_hz``, where the
+    magnets' mean Welch PSD exceeds ``snr`` x the floor (median PSD over the top half of the
+    Nyquist band: white sensor noise). ``band_hz[1]`` when the PSD never sinks that low.
+
+    Why: above the rail's shortest waves the measurement is sensor noise, while the twin, driven by
+    a reconstructed rail whose error there is coherent over the magnets (the shared position
+    channel; ~3 um at 0.08-0.2 m on a 9 m/s test pass), predicts 10x the measured level; comparing
+    there fits noise and made every gain unidentifiable (std 40-250 %)."""
+    lo, hi = float(band_hz[0]), float(band_hz[1])
+    x = np.asarray(accel_mps2, float)
+    x = x.reshape(x.shape[0], -1)
+    if x.shape[0] < 64:
+        return hi
+    from scipy.signal import welch
+    f, P = welch(x - x.mean(axis=0), fs=fs_hz, nperseg=min(1024, x.shape[0]), axis=0)
+    P = P.mean(axis=1)
+    top = f >= 0.25 * fs_hz
+    if top.sum() < 4:
+        return hi
+    floor = float(np.median(P[top]))
+    inb = np.flatnonzero((f >= lo) & (f <= hi))
+    if inb.size == 0 or floor <= 0:
+        return hi
+    k = inb[np.argmax(P[inb])]
+    while k + 1 < f.size and f[k + 1] <= hi and P[k + 1] > snr * floor:
+        k += 1
+    if k + 1 >= f.size or f[k + 1] > hi:
+        return hi
+    return float(max(f[k + 1], 2.0 * lo))
+
+
 @dataclass(frozen=True, eq=False)
 class PassEvidence:
     """One pass for the magnet layer (build it with ``make_evidence``).
@@ -145,13 +178,15 @@ def make_evidence(time_s, accel_mps2, magnets: Sequence[int], position_time_s, p
                   irregularity, magnet_offsets_m: Sequence[float], *, valid_range_m=None, band_hz=(1.0, 80.0),
                   model_fs_hz: float = 500.0, skip_s: float = 0.3, margin_m: float = 0.0,
                   sensor_delay_s: float = 0.0, max_window_s: float | None = None, label: str = "",
-                  irregularity_method: str = "") -> PassEvidence:
+                  irregularity_method: str = "", noise_snr: float | None = 10.0) -> PassEvidence:
     """Evidence of one pass from full-rate recorded accelerations (n, m) at ``time_s``.
 
     ``valid_range_m``: list of (lo, hi) stretches where the irregularity is valid (default: the
     whole (x, r) grid); a magnet's sample is compared when its position (reference position at
     t - ``sensor_delay_s`` + offset) is inside a stretch by at least ``margin_m``, after ``skip_s``
-    (start transient) and within ``max_window_s`` of the start."""
+    (start transient) and within ``max_window_s`` of the start. ``noise_snr``: the band ends where
+    the measured accelerations sink into their noise floor (:func:`above_noise_hz`; None: keep
+    ``band_hz``)."""
     t = np.asarray(time_s, float)
     a = np.atleast_2d(np.asarray(accel_mps2, float))
     mags = tuple(int(m) for m in magnets)
@@ -168,6 +203,8 @@ def make_evidence(time_s, accel_mps2, magnets: Sequence[int], position_time_s, p
     if max_window_s is not None:
         keep = t <= t[0] + float(max_window_s)
         t, a = t[keep], a[keep]
+    if noise_snr is not None:
+        band = (band[0], above_noise_hz(a, fs, band, float(noise_snr)))
     af = _bandpass(a, fs, band)
     sel = np.arange(0, t.size, k)
     ts = t[sel]

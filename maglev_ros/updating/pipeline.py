@@ -28,11 +28,16 @@ Choices (the paper's text is vague here):
   is honoured (profile at its true positions, twin output delayed alike); without it the profile
   is shifted by speed x delay, which the twin driven by it reproduces (on paper_pass the true-gain
   NRMSE is 0.0326 without and 0.0330 with it: not a cause of gain bias, but the geometry is right
-  only with it). If ``profile_for_twin`` raises, the failure is logged and
+  only with it). The twin is driven by what the magnets agree on (``denoise``, the coherent gain of
+  ``irregularity.denoise``, as the diagnosing twin): the raw mean carried gap noise at the shortest
+  waves, and at 9 m/s (band to 112 Hz) the twin on it predicted 0.12 m/s^2 rms at 50-112 Hz where the
+  magnets measured 0.008 (true rail: 0.008), which left every gain unidentifiable (std 40-250 %).
+  If ``profile_for_twin`` raises, the failure is logged and
   recorded in the pass's provenance (``irregularity.reason``) and only then the demoted inertial
   fallback ``magnet_layer.irregularity_from_signals`` is used.
 - Compared: each magnet while it is over the valid profile (taper + 1 m margin), band-passed to
-  the profile's band, at <= ``magnet_fs_hz`` (every k-th measured sample after the band-pass).
+  the profile's band cut where the measured accelerations sink into their noise floor
+  (``magnet_layer.above_noise_hz``), at <= ``magnet_fs_hz`` (every k-th measured sample after the band-pass).
 """
 from __future__ import annotations
 
@@ -288,7 +293,8 @@ class PassRecording:
 
 def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_fs_hz: float = 500.0,
                   max_window_s: float | None = None, highpass_hz: float = 1.0, skip_s: float = 0.3,
-                  use_twin_input: bool = True, profile_spacing_m: float = 0.01, log=None) -> PassEvidence:
+                  use_twin_input: bool = True, profile_spacing_m: float = 0.01, denoise: bool = True,
+                  log=None) -> PassEvidence:
     """Magnet-layer evidence of one pass with the irregularity for the twin ``config`` (the
     guideway-updated twin; built once, see module docstring). Records the method in
     ``rec.info["irregularity"]``; a failure of ``profile_for_twin`` is logged and recorded there
@@ -325,8 +331,10 @@ def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_f
             band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
             rec.info["irregularity"] = {"method": "irregularity.twin_input.profile_for_twin",
                                         "config": "guideway-updated twin, nominal gains", **ti.to_dict()}
+            x_ir, r_ir, g = ti.denoised_twin_input() if denoise else (*ti.as_twin_input(), None)
+            rec.info["irregularity"]["denoise"] = None if g is None else g.to_dict()
             return make_evidence(t, a, mags, pos.time_s, pos.channel("position_m"), pos.channel("speed_mps"),
-                                 ti.as_twin_input(), offs, valid_range_m=_runs(ti.valid, ti.position_m),
+                                 (x_ir, r_ir), offs, valid_range_m=_runs(ti.valid, ti.position_m),
                                  band_hz=band, model_fs_hz=magnet_fs_hz, skip_s=skip_s,
                                  margin_m=ti.taper_m + 1.0, sensor_delay_s=tau, max_window_s=max_window_s,
                                  label=rec.label, irregularity_method="profile_for_twin")

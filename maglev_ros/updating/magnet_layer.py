@@ -106,8 +106,8 @@ def above_noise_hz(accel_mps2: np.ndarray, fs_hz: float, band_hz, snr: float = 1
     Nyquist band: white sensor noise). ``band_hz[1]`` when the PSD never sinks that low.
 
     Why: above the rail's shortest waves the measurement is sensor noise, while the twin, driven by
-    a reconstructed rail whose error there is coherent over the magnets (the shared position
-    channel; ~3 um at 0.08-0.2 m on a 9 m/s test pass), predicts 10x the measured level; comparing
+    a reconstructed rail whose error there is coherent over the magnets (coherence 0.6, ~3 um at
+    0.08-0.2 m on a 9 m/s test pass; cause not traced), predicts 10x the measured level; comparing
     there fits noise and made every gain unidentifiable (std 40-250 %)."""
     lo, hi = float(band_hz[0]), float(band_hz[1])
     x = np.asarray(accel_mps2, float)

@@ -29,9 +29,12 @@ Choices (the paper's text is vague here):
   is shifted by speed x delay, which the twin driven by it reproduces (on paper_pass the true-gain
   NRMSE is 0.0326 without and 0.0330 with it: not a cause of gain bias, but the geometry is right
   only with it). The twin is driven by what the magnets agree on (``denoise``, the coherent gain of
-  ``irregularity.denoise``, as the diagnosing twin): the raw mean carried gap noise at the shortest
-  waves, and at 9 m/s (band to 112 Hz) the twin on it predicted 0.12 m/s^2 rms at 50-112 Hz where the
-  magnets measured 0.008 (true rail: 0.008), which left every gain unidentifiable (std 40-250 %).
+  ``irregularity.denoise``: one rule with the diagnosing twin). That alone does not clean the
+  shortest waves: on a 9 m/s test pass (band to 112 Hz) the reconstruction carried ~3 um at
+  0.08-0.2 m where the true rail has none, coherent over the magnets (0.6), and the twin on it
+  predicted 0.12 m/s^2 rms at 50-112 Hz (0.115 denoised) where the magnets measured their noise
+  floor, 0.008 (true rail: 0.008); every gain came out unidentifiable (std 40-250 %). The compared
+  band therefore ends where the measured accelerations sink into their noise (below).
   If ``profile_for_twin`` raises, the failure is logged and
   recorded in the pass's provenance (``irregularity.reason``) and only then the demoted inertial
   fallback ``magnet_layer.irregularity_from_signals`` is used.

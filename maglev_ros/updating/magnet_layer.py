@@ -56,7 +56,8 @@ to a 1 % gain). On the pipeline test pass the best-determined combination was 1.
 sandwich std of 0.07 %; a timing error of ~0.2 ms moves it by that much. The reported
 covariance is sandwich + band-split + nuisance. A gain is flagged identifiable when its relative std
 <= ``max_rel_std`` (default 2.5 %: +-5 % at 2 sigma); the principal directions of the total
-covariance are reported as log-linear combinations (identifiable when their std <= max_rel_std).
+covariance are reported as log-linear combinations (identifiable when their std <= 1 %,
+``identifiability.COMBINATION_MAX_REL_STD``: +-2 % at 2 sigma).
 Why by hand: LM polish is scipy's; the sandwich, the random-effects estimate and the combinations
 are a few lines of algebra specific to this residual.
 """
@@ -75,7 +76,7 @@ from scipy.optimize import least_squares
 from maglev_ros.errors import UserError
 from maglev_ros.twin.design import TwinConfig, with_levitation
 from maglev_ros.updating.grp import grey_relational_projection
-from maglev_ros.updating.identifiability import Combination, Identifiability, analyse
+from maglev_ros.updating.identifiability import COMBINATION_MAX_REL_STD, Combination, Identifiability, analyse
 from maglev_ros.updating.mopso import MOPSO, ParetoResult
 from maglev_ros.updating.parameters import MAGNET_PARAMS, SYMBOLS, magnet_space
 from maglev_ros.updating.sampling import optimal_lhs
@@ -567,7 +568,7 @@ class MagnetLayer:
             c = np.asarray(c4[:3])
             r = float(np.sqrt(max(c @ cov @ c, 0.0)))
             val = float(np.prod(vals4 ** np.asarray(c4)))
-            combos.append(Combination(expr, tuple(map(float, c4)), val, r * val, r <= self.max_rel_std))
+            combos.append(Combination(expr, tuple(map(float, c4)), val, r * val, r <= COMBINATION_MAX_REL_STD))
         w, V = np.linalg.eigh(cov)
         for k in range(space.dim):                 # principal log-combinations, best determined first
             c = V[:, k] / V[np.argmax(np.abs(V[:, k])), k]
@@ -577,7 +578,7 @@ class MagnetLayer:
             r = float(np.sqrt(max(c @ cov @ c, 0.0)))
             val = float(np.prod(values ** c))
             combos.append(Combination(_expression(c, space.names), tuple(map(float, c)) + (0.0,), val, r * val,
-                                      r <= self.max_rel_std))
+                                      r <= COMBINATION_MAX_REL_STD))
         ident = Identifiability(ident4.names, ident4.singular_values, ident4.ridge_directions, ident4.theta_cov,
                                 ident4.param_std, ident4.identifiable, tuple(combos))
         if self.fix_static_current:

@@ -173,3 +173,39 @@ def test_bad_inputs_one_line_errors(bags, tmp_path, capsys):
     assert code == 1 and len(err.splitlines()) == 1
     code, err = run("--ambient", str(tmp_path / "nope"))
     assert code == 1 and "no such bag" in err
+
+
+def test_fast_pass_compares_only_above_the_noise_floor(tmp_path):
+    """A 9 m/s pass with another truth (gains -28/+10/-25 %, E/rho/kb -13/+12/+14 %): its compared band
+    (1 Hz to v / 8 cm = 112 Hz) reaches where the magnets measure only their noise floor; compared
+    there, the twin on the reconstructed rail fitted noise and every gain came out unidentifiable
+    (std 42-251 %, updated NRMSE 0.078). Every combination reported identifiable must hold the truth
+    within 2 %, and the update must fit the magnets well (NRMSE <= 0.05 and <= 0.2 x the nominal's)."""
+    global TRUTH
+    saved = TRUTH
+    TRUTH = {"guideway": {"youngs_modulus_pa": 3.9e10 * 0.87, "density_kg_m3": 2500.0 * 1.12,
+                          "bearing_stiffness_n_per_m": 3.0e10 * 1.14},
+             "levitation": {"kp_a_per_m": 6500.0 * 0.72, "kv_a_s_per_m": 35.0 * 1.1, "ka_a_s2_per_m": 0.25 * 0.75}}
+    try:
+        amb = _bag(tmp_path, "amb", "ambient", duration_s=60.0, seed=151)
+        p1 = _bag(tmp_path, "p1", "pass", seed=51, speed_mps=9.0)
+        tl = NOMINAL["levitation"] | TRUTH["levitation"]
+    finally:
+        TRUTH = saved
+    out = tmp_path / "params.json"
+    r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "update", "--ambient", str(amb), "--pass", str(p1),
+                        "--out", str(out), "--samples", "10", "--polish-evals", "10", "--swarm", "40", "40"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    sym = {"kp": tl["kp_a_per_m"], "kv": tl["kv_a_s_per_m"], "ka": tl["ka_a_s2_per_m"], "I0": tl["static_current_a"]}
+    for c in doc["identifiable_combinations"]:
+        ex = _exponents(c["expression"])
+        if set(ex) <= set(sym):
+            truth = float(np.prod([sym[k] ** v for k, v in ex.items()]))
+            assert abs(c["value"] / truth - 1) < 0.02, (c, truth)
+    e = doc["magnet_accel_nrmse"]
+    assert e["updated"] <= 0.05 and e["updated"] <= 0.2 * e["nominal"], e
+    kp = doc["parameters"]["kp_a_per_m"]
+    assert kp["std"] < 0.15 * kp["value"], kp                 # was 42 % when noise was compared
+    assert abs(kp["value"] / tl["kp_a_per_m"] - 1) < 2 * kp["std"] / kp["value"], kp

@@ -12,7 +12,8 @@ residual at the optimum, floored at ``min_shape_std``).
 Ridge handling: modes alone leave the common scale of (E, rho, kb) free (K and M scale together). Then
 the reported point is the one on the ridge nearest to the design values (in log space, inside the
 bounds), E, rho and kb are flagged not identifiable and "E/rho" and "kb/rho" are reported with their
-std. A quasi-static midspan deflection under the vehicle's known weight (``StaticTarget``) depends on
+std (as identifiable combinations when determined to 1 %, ``identifiability.COMBINATION_MAX_REL_STD``).
+A quasi-static midspan deflection under the vehicle's known weight (``StaticTarget``) depends on
 E and kb but not on rho, which pins the scale: all three become identifiable.
 
 Model speed: K(E, kb) = (E/E0) K_beam + kb K_bearing and M(rho) = (rho/rho0) M0 are linear, so the

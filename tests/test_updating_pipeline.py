@@ -24,10 +24,10 @@ TRUTH = {"guideway": {"youngs_modulus_pa": 3.9e10 * 1.10, "density_kg_m3": 2500.
          "levitation": {"kp_a_per_m": 6500.0 * 1.25, "kv_a_s_per_m": 35.0 * 0.78, "ka_a_s2_per_m": 0.25 * 1.2}}
 
 
-def _bag(tmp, name, kind, **over):
+def _bag(tmp, name, kind, truth=None, **over):
     sc = load_scenario("paper-ambient" if kind == "ambient" else "paper")
     raw = dict(sc.raw)
-    raw.update({"design": NOMINAL, "truth": TRUTH, "line": {"n_spans": 3, "span_length_m": 12.384,
+    raw.update({"design": NOMINAL, "truth": truth or TRUTH, "line": {"n_spans": 3, "span_length_m": 12.384,
                                                               "instrumented_span": "S2"}})
     if kind == "pass":      # ~10.7 s: profile_for_twin needs >= ~5 s; ~8 s per magnet pin the gains
         raw.update({"lead_in_s": 3.0, "free_decay_s": 3.0,
@@ -181,17 +181,12 @@ def test_fast_pass_compares_only_above_the_noise_floor(tmp_path):
     there, the twin on the reconstructed rail fitted noise and every gain came out unidentifiable
     (std 42-251 %, updated NRMSE 0.078). Every combination reported identifiable must hold the truth
     within 2 %, and the update must fit the magnets well (NRMSE <= 0.05 and <= 0.2 x the nominal's)."""
-    global TRUTH
-    saved = TRUTH
-    TRUTH = {"guideway": {"youngs_modulus_pa": 3.9e10 * 0.87, "density_kg_m3": 2500.0 * 1.12,
+    truth = {"guideway": {"youngs_modulus_pa": 3.9e10 * 0.87, "density_kg_m3": 2500.0 * 1.12,
                           "bearing_stiffness_n_per_m": 3.0e10 * 1.14},
              "levitation": {"kp_a_per_m": 6500.0 * 0.72, "kv_a_s_per_m": 35.0 * 1.1, "ka_a_s2_per_m": 0.25 * 0.75}}
-    try:
-        amb = _bag(tmp_path, "amb", "ambient", duration_s=60.0, seed=151)
-        p1 = _bag(tmp_path, "p1", "pass", seed=51, speed_mps=9.0)
-        tl = NOMINAL["levitation"] | TRUTH["levitation"]
-    finally:
-        TRUTH = saved
+    amb = _bag(tmp_path, "amb", "ambient", truth, duration_s=60.0, seed=151)
+    p1 = _bag(tmp_path, "p1", "pass", truth, seed=51, speed_mps=9.0)
+    tl = NOMINAL["levitation"] | truth["levitation"]
     out = tmp_path / "params.json"
     r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "update", "--ambient", str(amb), "--pass", str(p1),
                         "--out", str(out), "--samples", "10", "--polish-evals", "10", "--swarm", "40", "40"],
@@ -202,8 +197,8 @@ def test_fast_pass_compares_only_above_the_noise_floor(tmp_path):
     for c in doc["identifiable_combinations"]:
         ex = _exponents(c["expression"])
         if set(ex) <= set(sym):
-            truth = float(np.prod([sym[k] ** v for k, v in ex.items()]))
-            assert abs(c["value"] / truth - 1) < 0.02, (c, truth)
+            true_value = float(np.prod([sym[k] ** v for k, v in ex.items()]))
+            assert abs(c["value"] / true_value - 1) < 0.02, (c, true_value)
     e = doc["magnet_accel_nrmse"]
     assert e["updated"] <= 0.05 and e["updated"] <= 0.2 * e["nominal"], e
     kp = doc["parameters"]["kp_a_per_m"]

@@ -105,9 +105,9 @@ class TwinIrregularity:
     def denoised_twin_input(self):
         """(x, r, gain): the twin input keeping only what the magnets agree on (coherent Wiener gain,
         :mod:`maglev_ros.irregularity.denoise`); ``gain`` is None and r unchanged with one magnet or
-        too short a common stretch. Every user that drives the twin with a reconstructed rail takes
-        this: the raw mean carries short waves the magnets do not agree on (gap noise), which the twin
-        turns into magnet accelerations 10-1000x the measured ones at 50-110 Hz."""
+        too short a common stretch. The diagnosis and the model updating (offline and online) drive
+        the twin with this: the raw mean carries short waves the magnets do not agree on (gap noise),
+        which the twin turned into magnet accelerations 10-1000x the measured ones at 60-110 Hz."""
         from .denoise import apply_gain, coherent_gain
         g = coherent_gain(self.result.magnet_profiles_m, self.spacing_m)
         if g is None:

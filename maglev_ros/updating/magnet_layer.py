@@ -115,8 +115,7 @@ def above_noise_hz(accel_mps2: np.ndarray, fs_hz: float, band_hz, snr: float = 1
     x = x.reshape(x.shape[0], -1)
     if x.shape[0] < 64:
         return hi
-    from scipy.signal import welch
-    f, P = welch(x - x.mean(axis=0), fs=fs_hz, nperseg=min(1024, x.shape[0]), axis=0)
+    f, P = signal.welch(x - x.mean(axis=0), fs=fs_hz, nperseg=min(1024, x.shape[0]), axis=0)
     P = P.mean(axis=1)
     top = f >= 0.25 * fs_hz
     if top.sum() < 4:

@@ -388,7 +388,7 @@ class OnlineUpdater:
         v_max = float(np.max(np.abs(posd[:, 1])))
         band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
         try:
-            ev = make_evidence(t, a_m, mags, pos.time_s, posd[:, 0], posd[:, 1], ti.as_twin_input(),
+            ev = make_evidence(t, a_m, mags, pos.time_s, posd[:, 0], posd[:, 1], ti.denoised_twin_input()[:2],
                                md.magnet_offsets_m, valid_range_m=_stretches(ti.valid, ti.position_m), band_hz=band,
                                model_fs_hz=self.magnet_fs_hz, skip_s=0.3, margin_m=ti.taper_m + 1.0,
                                label="online window", irregularity_method="profile_for_twin")

@@ -28,8 +28,8 @@ Choices (the paper's text is vague here):
   is honoured (profile at its true positions, twin output delayed alike); without it the profile
   is shifted by speed x delay, which the twin driven by it reproduces (on paper_pass the true-gain
   NRMSE is 0.0326 without and 0.0330 with it: not a cause of gain bias, but the geometry is right
-  only with it). The twin is driven by what the magnets agree on (``denoise``, the coherent gain of
-  ``irregularity.denoise``: one rule with the diagnosing twin). That alone does not clean the
+  only with it). The twin is driven by what the magnets agree on (the coherent gain of
+  ``irregularity.denoise``: one rule with the diagnosing twin and the online updater). That alone does not clean the
   shortest waves: on a 9 m/s test pass (band to 112 Hz) the reconstruction carried ~3 um at
   0.08-0.2 m where the true rail has none, coherent over the magnets (0.6), and the twin on it
   predicted 0.12 m/s^2 rms at 50-112 Hz (0.115 denoised) where the magnets measured their noise
@@ -296,8 +296,7 @@ class PassRecording:
 
 def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_fs_hz: float = 500.0,
                   max_window_s: float | None = None, highpass_hz: float = 1.0, skip_s: float = 0.3,
-                  use_twin_input: bool = True, profile_spacing_m: float = 0.01, denoise: bool = True,
-                  log=None) -> PassEvidence:
+                  use_twin_input: bool = True, profile_spacing_m: float = 0.01, log=None) -> PassEvidence:
     """Magnet-layer evidence of one pass with the irregularity for the twin ``config`` (the
     guideway-updated twin; built once, see module docstring). Records the method in
     ``rec.info["irregularity"]``; a failure of ``profile_for_twin`` is logged and recorded there
@@ -332,10 +331,10 @@ def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_f
             fs = float(acc.sample_rate_hz or 1.0 / np.median(np.diff(t)))
             v_max = float(np.nanmax(np.abs(v_pos)))
             band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
+            x_ir, r_ir, g = ti.denoised_twin_input()
             rec.info["irregularity"] = {"method": "irregularity.twin_input.profile_for_twin",
-                                        "config": "guideway-updated twin, nominal gains", **ti.to_dict()}
-            x_ir, r_ir, g = ti.denoised_twin_input() if denoise else (*ti.as_twin_input(), None)
-            rec.info["irregularity"]["denoise"] = None if g is None else g.to_dict()
+                                        "config": "guideway-updated twin, nominal gains", **ti.to_dict(),
+                                        "denoise": None if g is None else g.to_dict()}
             return make_evidence(t, a, mags, pos.time_s, pos.channel("position_m"), pos.channel("speed_mps"),
                                  (x_ir, r_ir), offs, valid_range_m=_runs(ti.valid, ti.position_m),
                                  band_hz=band, model_fs_hz=magnet_fs_hz, skip_s=skip_s,

@@ -51,7 +51,7 @@ from maglev_ros.updating.guideway_layer import GuidewayLayer, SpanModel
 from maglev_ros.updating.history import ParameterHistory
 from maglev_ros.updating.magnet_layer import MagnetLayer, make_evidence
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
-from maglev_ros.updating.pipeline import TWIN_NAMES, modal_target
+from maglev_ros.updating.pipeline import TWIN_NAMES, _runs, modal_target
 
 
 def _twin_revision(frame_id: str) -> int | None:
@@ -60,13 +60,6 @@ def _twin_revision(frame_id: str) -> int | None:
     if len(parts) == 3 and parts[0] == "twin" and parts[1] == "rev" and parts[2].isdigit():
         return int(parts[2])
     return None
-
-
-def _stretches(mask: np.ndarray, x: np.ndarray) -> list[tuple[float, float]]:
-    """(first, last) x of each run of True in ``mask``."""
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    return [(float(x[i0]), float(x[i1 - 1])) for i0, i1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]
 
 
 @dataclass(frozen=True)
@@ -389,7 +382,7 @@ class OnlineUpdater:
         band = (ti.highpass_hz, min(v_max / ti.min_wavelength_m, 0.45 * fs))
         try:
             ev = make_evidence(t, a_m, mags, pos.time_s, posd[:, 0], posd[:, 1], ti.denoised_twin_input()[:2],
-                               md.magnet_offsets_m, valid_range_m=_stretches(ti.valid, ti.position_m), band_hz=band,
+                               md.magnet_offsets_m, valid_range_m=_runs(ti.valid, ti.position_m), band_hz=band,
                                model_fs_hz=self.magnet_fs_hz, skip_s=0.3, margin_m=ti.taper_m + 1.0,
                                label="online window", irregularity_method="profile_for_twin")
         except UserError as exc:

@@ -276,6 +276,7 @@ def twin_rail_deflection(config: TwinConfig, line, t, position_m, speed_mps, irr
 
 
 def _runs(mask: np.ndarray, x: np.ndarray) -> list[tuple[float, float]]:
+    """(first, last) x of each run of True in ``mask`` (the valid stretches of a profile)."""
     m = np.concatenate([[False], np.asarray(mask, bool), [False]])
     d = np.diff(m.astype(np.int8))
     return [(float(x[i0]), float(x[i1 - 1])) for i0, i1 in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))]

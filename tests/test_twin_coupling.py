@@ -99,13 +99,16 @@ def test_newmark_and_separated_iteration_agree():
 
 @pytest.mark.parametrize("method", ["newmark", "separated"])
 def test_converges_with_time_step(method):
-    """Self-convergence against a 1/8 ms run: errors fall ~4x per halving (second-order schemes)."""
+    """Self-convergence against a 1/8 ms run: errors fall ~4x per halving once the step resolves the
+    modes (second-order schemes). With the guideway modes prewarped (:func:`prewarped_modes`) the
+    1 ms run is already 2-3x closer than the plain scheme's (magnet accel 0.0032 vs 0.0078, guideway
+    displacement 1.5e-4 vs 4.9e-4), so its first halving gains less (measured 2.3x)."""
     ref = _irregular_pass(method, 1.25e-4)
     runs = [_irregular_pass(method, dt) for dt in (1e-3, 5e-4, 2.5e-4)]
     for q in ("magnet_accel_mps2", "guideway_disp_m"):
         errs = [_rel(getattr(r, q), getattr(ref, q)) for r in runs]
-        assert errs[0] < 0.02
-        assert errs[0] / errs[1] > 2.5 and errs[1] / errs[2] > 2.5
+        assert errs[0] < 0.01
+        assert errs[0] / errs[1] > 1.7 and errs[1] / errs[2] > 2.5
 
 
 def test_uniform_rail_offset_is_followed_exactly():
@@ -145,3 +148,62 @@ def test_paper_like_pass_at_25_kmh():
     peak = float(np.max(np.abs(res.guideway_disp_m)))
     assert 0.3e-3 < peak < 0.6e-3          # 000: 0.437 mm measured at midspan
     assert np.all(np.abs(res.magnet_gap_m - 0.010) < 1e-4)
+
+
+def _damped_modes_fit(t, y, f0_hz, z0):
+    """Frequencies (Hz) and damping ratios of sum_j exp(-s_j t) (a_j cos w_j t + b_j sin w_j t) fitted
+    to y (amplitudes solved linearly inside: variable projection)."""
+    from scipy.optimize import least_squares
+
+    def basis(p):
+        k = len(f0_hz)
+        w, s = p[:k], p[k:]
+        e = np.exp(-np.outer(t, s))
+        return np.hstack([e * np.cos(np.outer(t, w)), e * np.sin(np.outer(t, w))])
+
+    def res(p):
+        B = basis(p)
+        c = np.linalg.lstsq(B, y, rcond=None)[0]
+        return B @ c - y
+    w0 = 2 * np.pi * np.asarray(f0_hz)
+    sol = least_squares(res, np.concatenate([w0, z0 * w0]), x_scale=np.concatenate([w0, z0 * w0]))
+    k = len(f0_hz)
+    w, s = sol.x[:k], sol.x[k:]
+    wn = np.sqrt(w ** 2 + s ** 2)
+    return wn / (2 * np.pi), s / wn
+
+
+@pytest.mark.parametrize("prewarp,tol", [(True, 0.001), (False, None)])
+def test_free_decay_rings_at_the_girder_eigenfrequencies_at_the_default_step(prewarp, tol):
+    """After the vehicle leaves a span, the span rings at its FE eigenfrequencies with its modal
+    damping: checked at the default 1 ms step on a quarter-span accelerometer (modes 1-3 of the
+    elastic-bearing girder, 23-200 Hz). The plain average-acceleration scheme rings
+    (2/h) arctan(w h/2): 2.7 % low at 93 Hz, 6 % at 200 Hz (``prewarp=False``: shown to fail)."""
+    from dataclasses import replace
+    cfg = twin_config()
+    cfg = replace(cfg, numerics=replace(cfg.numerics, modal_prewarp=prewarp))
+    line = [{"id": "S1", "start_m": 0.0, "length_m": L}]
+    v = 25.0
+    res = simulate_pass(cfg, line, v, None, {"q": L / 4}, fs_out_hz=1000.0, dt_max_s=1e-3)
+    g = Guideway([SpanSpec("S1", 0.0, L, cfg.guideway)], cfg.numerics.n_elements_per_span)
+    mb = g.modes(cfg.numerics.mode_cutoff_hz, 1)
+    f_fe, z_fe = mb.freq_hz[:3], mb.damping_ratio[:3]
+    assert 20 < f_fe[0] < 30 and 80 < f_fe[1] < 110 and f_fe[2] < 300
+    # free decay: from when the rear magnet has left the span, 1 s (only outputs after it)
+    x_rear = res.position_m + min(cfg.vehicle.magnet_offsets_m)
+    off = np.flatnonzero(x_rear > L + 0.5)
+    assert off.size, "the vehicle never left the span"
+    t_end = res.time_s[off[0]] + 1.0
+    st = TwinStepper(cfg, line, sensors={"q": L / 4}, fs_out_hz=1000.0, dt_max_s=1e-3, start_position_m=
+                     res.position_m[0], start_speed_mps=v)
+    full = st.advance(t_end)
+    sel = full.time_s >= res.time_s[off[0]]
+    t = full.time_s[sel] - full.time_s[sel][0]
+    y = full.guideway_accel_mps2[sel, 0]
+    f_fit, z_fit = _damped_modes_fit(t, y, f_fe, float(np.mean(z_fe)))
+    err = np.abs(f_fit / f_fe - 1)
+    if tol is None:
+        assert err[1] > 0.02          # the plain scheme's error at 93 Hz (so the check can fail)
+        return
+    assert np.all(err < tol), (f_fit, f_fe)
+    assert np.all(np.abs(z_fit / z_fe - 1) < 0.05), (z_fit, z_fe)

@@ -295,9 +295,9 @@ class TwinStepper:
         self._E = E
         self._GL = np.ascontiguousarray(np.vstack([self._G, E]))     # (5m, 3m)
         self._ABd0 = np.ascontiguousarray(np.hstack([Ad, Bd0]))
-        # guideway Newmark (average acceleration) per mode
-        w = self.modal.omega_rad_s
-        z = self.modal.damping_ratio
+        # guideway Newmark (average acceleration) per mode, prewarped (:func:`prewarped_modes`)
+        w, z, self._force_gain = prewarped_modes(self.modal.omega_rad_s, self.modal.damping_ratio, h,
+                                                 self.config.numerics.modal_prewarp)
         self._khat = w ** 2 + 2 * z * w * (2 / h) + 4 / h ** 2
         self._gq = 1.0 / self._khat
         self._c2zw = 2 * z * w
@@ -345,7 +345,8 @@ class TwinStepper:
         rd = self.irregularity.slope(Xf).reshape(X.shape) * vel[:, None]
         g = self._gq
         phig = phi * g[None, None, :]
-        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)))
+        # the modal forces phi^T F, times the prewarp's force gain (the rail displacement phi q is not)
+        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)) * self._force_gain[None, :, None])
         P = phig @ phiT
         Qc = (dphi * g[None, None, :]) @ phiT
         Q = (2 / self.dt_s) * P + vel[:, None, None] * Qc
@@ -440,6 +441,30 @@ class TwinStepper:
             magnet_force_n=rec_mag[:, 3], sensor_names=self.sensor_names, sensor_x_m=self.sensor_x_m,
             guideway_disp_m=rec_q @ self.sensor_shapes.T, guideway_accel_mps2=rec_qdd @ self.sensor_shapes.T,
             iterations=rec_it, method=self.method, dt_s=h)
+
+
+def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: float,
+                    prewarp: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frequency, damping ratio, force gain) per mode to integrate with Newmark average acceleration.
+
+    That scheme is the trapezoidal rule (Tustin map s -> (2/h)(z-1)/(z+1)): a mode at w rings at
+    (2/h) arctan(w h/2), 2.7 % low for 93 Hz at h = 1 ms, which moved the guideway's second bending
+    mode across the 88 Hz band edge and was most of a calibrated twin's misfit on quarter-span
+    accelerometers (held-out NRMSE 0.15-0.18, 0.07-0.11 with this). Prewarped (written by hand: a
+    standard filter-design step, for modal oscillators here): w' = (2/h) tan(w h/2) puts the discrete
+    resonance at w exactly, a force gain g = (w'/w)^2 keeps the static deflection g/w'^2 = 1/w^2, and
+    the damping ratio g*zeta makes the acceleration response's peak and half-power width those of
+    the continuous mode (to 0.1 % at w h = 0.58, 3 % at w h = 1.6); the displacement's resonant peak
+    is 1/g low, the quasi-static deflection exact. Tan is capped at w h/2 = 1.4 (modes near the step's
+    Nyquist rate stay finite). ``prewarp=False``: the plain scheme."""
+    w = np.asarray(omega_rad_s, float)
+    z = np.asarray(damping_ratio, float)
+    if not prewarp:
+        return w, z, np.ones_like(w)
+    theta = np.minimum(0.5 * w * h_s, 1.4)
+    wp = np.where(theta > 0, (2.0 / h_s) * np.tan(theta), w)
+    g = np.where(w > 0, (wp / np.where(w > 0, w, 1.0)) ** 2, 1.0)
+    return wp, z * g, g
 
 
 def _mv(A, x):
@@ -674,9 +699,11 @@ def simulate_pass(config: TwinConfig, line: Any = None, speed_mps: Any = 6.944, 
 
 def moving_force_response(modal: ModalBasis, forces_n: Sequence[float], offsets_m: Sequence[float],
                           start_position_m: float, speed_mps: float, duration_s: float, dt_s: float,
-                          sensors_x_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          sensors_x_m: Sequence[float], prewarp: bool = True
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Guideway response to constant vertical forces (positive up) moving at constant speed, with
-    the same modal Newmark scheme and shape functions as the coupled solver (no vehicle).
+    the same modal Newmark scheme (:func:`prewarped_modes`) and shape functions as the coupled solver
+    (no vehicle).
 
     Returns (time_s, displacement_m (n, n_sensors), acceleration_mps2 (n, n_sensors)).
     """
@@ -687,9 +714,8 @@ def moving_force_response(modal: ModalBasis, forces_n: Sequence[float], offsets_
     t = np.arange(1, n + 1) * h
     X = start_position_m + speed_mps * t[:, None] + offs[None, :]
     phi = modal.shapes_at(X.ravel()).reshape(n, offs.size, modal.n_modes)
-    fq = np.einsum("sij,i->sj", phi, f)            # modal forces at each step
-    w = modal.omega_rad_s
-    z = modal.damping_ratio
+    w, z, gain = prewarped_modes(modal.omega_rad_s, modal.damping_ratio, h, prewarp)
+    fq = np.einsum("sij,i->sj", phi, f) * gain     # modal forces at each step
     khat = w ** 2 + 2 * z * w * (2 / h) + 4 / h ** 2
     q = np.zeros(modal.n_modes)
     qd = np.zeros_like(q)

@@ -37,7 +37,7 @@ from maglev_ros.errors import UserError
 from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
-from .discovery import discover, model_discoveries, persistent_findings
+from .discovery import discover, model_discoveries, persistent_findings, resonator_explainable
 from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
                        residual_rows, residual_vector, split_frames)
 from .fitting import (IDENTIFIABLE_LLR, BaseFit, HypFit, bic, fit_base, fit_gains, fit_hypothesis, safe_residual,
@@ -46,7 +46,8 @@ from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
 from .model import ModelSpec, base_spec, guideway_modal
 from .irregularity import with_twin_irregularity
 from .recording import GROUP_UNIT, Recording, require_pass
-from .scale_signature import PeerReferencedFit, ScaleSignature, peer_referenced_fit, scale_signature
+from .scale_signature import (MIN_ABS_LOG_SCALE, PeerReferencedFit, ScaleSignature, peer_referenced_fit,
+                              scale_signature)
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -360,6 +361,7 @@ class Diagnoser:
                     else (hf, v, d) for hf, v, d in fits]
         signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
         fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
+        fits = [_scale_needs_its_signature(hf, v, d, sig_of) for hf, v, d in fits]
         fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds})
         # a scale fault whose signature holds but which the twin's own level hides (the whole group off)
         peer_ref = _peer_referenced(fits, sig_of, recs, same_heldout, cfg.acceptance, base.spec, held_before)
@@ -663,7 +665,7 @@ def _span_findings(maps, spec: ModelSpec, spans: set, n: int, persistent=None) -
     found = discover(maps, modal, all_spans, max_findings=12)
     if persistent is not None:
         found += persistent_findings(persistent, modal, all_spans, found)
-    return [d for d in found if d["location"].get("span") in spans and d.get("sensed_on") != "vehicle"][:n]
+    return [d for d in found if d["location"].get("span") in spans and resonator_explainable(d)][:n]
 
 
 def _resonator_rejections(disc: list[dict], why_if_accepted: str) -> list[dict]:
@@ -740,6 +742,27 @@ def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceC
                                                  f"{after:.3f}) by the scale-fault signature: {sig.explain()}",),
                                         v.heldout_before, v.heldout_after, v.delta_bic))
     return out
+
+
+def _scale_needs_its_signature(hf, v: Verdict, d: float, sig_of: dict) -> tuple:
+    """A sensor_error accepted by the held-out gates with a clear scale (|ln s| >= the signature's
+    ``MIN_ABS_LOG_SCALE``) on a channel whose misfit against its peers is NOT the same factor in every
+    band and recording (:mod:`.scale_signature`) is rejected: a scale fault multiplies every band alike,
+    a local structural change (an attachment detuning its span's first mode: +16 % at 18-22 Hz, -40 % at
+    26-31 Hz) does not. With the twin's own error small (prewarped modes), one channel's misfit moves
+    the whole held-out NRMSE by ~10 % and passed those gates: tune case 26, a 38 Hz attachment on S2 was
+    called a 0.78 scale fault of G2A."""
+    h = hf.hyp
+    if not v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout"):
+        return hf, v, d
+    sig = sig_of.get(h.location["channels"][0])
+    ln_s = float(hf.params[0])
+    if sig is None or sig.holds or abs(ln_s) < MIN_ABS_LOG_SCALE:
+        return hf, v, d
+    why = (f"fitted scale x{math.exp(ln_s):.2f}, but a scale fault reads the same factor in every band and "
+           f"recording and this channel does not ({sig.explain()}): the structure near it or the twin, "
+           "not the instrument")
+    return hf, Verdict(False, (why,), v.heldout_before, v.heldout_after, v.delta_bic), d
 
 
 def _peer_gates(h, sig: ScaleSignature | None, pf: PeerReferencedFit | None, acc: AcceptanceConfig) -> str:

@@ -230,3 +230,30 @@ def test_a_broadly_damped_resonator_is_not_a_plausible_attachment():
     assert ok and why == ""
     ok, why = ResonatorFinder._plausible(Resonator(0, 5.0, 41.0, 0.025, 0.101), 30.0, 50.0)
     assert not ok and "10.1 %" in why and "broader" in why
+
+
+def test_no_resonator_is_fitted_below_the_quasi_static_band():
+    """A finding wholly below 3 Hz (the guideway's quasi-static response to the passing vehicle) gets
+    no added resonator; a finding reaching above it is searched from 3 Hz up at most."""
+    from types import SimpleNamespace
+    from maglev_ros.discrepancy.discovery import RESONATOR_MIN_HZ, model_discoveries, resonator_explainable
+
+    def finding(f0, f1, span="S2", on="guideway"):
+        return {"kind": "resonance", "frequency_hz": [f0, f1], "sensed_on": on, "score": 10.0,
+                "location": {"span": span, "position_m": [12.4, 24.8]}, "explanation": "x."}
+    assert not resonator_explainable(finding(0.0, 3.0))
+    assert resonator_explainable(finding(0.0, 6.0)) and resonator_explainable(finding(37.0, 44.0))
+    assert not resonator_explainable(finding(37.0, 44.0, on="vehicle"))
+    assert not resonator_explainable(finding(37.0, 44.0, span=None))
+    searched = []
+
+    class Finder:
+        def fit(self, base, tr, te, band, span_index, search):
+            searched.append((tuple(band), search))
+            return SimpleNamespace(accepted=False, verdict=None, to_dict=lambda: {"accepted": False},
+                                   explanation=lambda band: "not supported.")
+    base = SimpleNamespace(spec=SimpleNamespace(spans=(SimpleNamespace(span_id="S1"), SimpleNamespace(span_id="S2"))))
+    model_discoveries([finding(0.0, 3.0), finding(0.0, 6.0)], base, [], [], None, max_resonators=3,
+                      finder=Finder(), worst_span_fallback=False)
+    assert [b for b, _ in searched] == [(0.0, 6.0)]
+    assert searched[0][1][0] == pytest.approx(RESONATOR_MIN_HZ) and searched[0][1][1] == pytest.approx(6.72)

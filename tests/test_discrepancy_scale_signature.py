@@ -110,3 +110,30 @@ def test_two_sensors_of_one_span_reading_high_is_the_span_not_two_faults(seed):
     recs = [_recording(rng, {"G2": 1.35}) for _ in range(2)]
     sig_of = {n: scale_signature(n, recs) for n in pos}
     assert sig_of["G2"].holds and _span_wide(sig_of, recs, rec, spec) == {}
+
+
+def _sensor_fit(ln_scale, channel="G2A", label="sensor_error@G2A"):
+    from types import SimpleNamespace
+    hyp = SimpleNamespace(effect="sensor_error", label=label, location={"channels": [channel]})
+    return SimpleNamespace(hyp=hyp, params=np.array([ln_scale, 0.0, 0.0]))
+
+
+def test_an_accepted_scale_fault_without_the_signature_is_rejected():
+    """A clear scale (x0.78) accepted by the held-out gates on a channel whose misfit differs band by
+    band (an attachment detuning its span) is the structure, not the instrument; with the signature,
+    or with a small scale (offset/drift fits), the verdict stands."""
+    from maglev_ros.discrepancy.acceptance import Verdict
+    from maglev_ros.discrepancy.diagnose import _scale_needs_its_signature
+    from maglev_ros.discrepancy.scale_signature import ScaleSignature
+    ok = Verdict(True, (), 0.155, 0.140, -649.0)
+    mixed = ScaleSignature("G2A", (-0.07, -0.06), (0.65, 0.59), (14, 14), ("G1A", "G2Q", "G3A"))
+    flat = ScaleSignature("G2A", (-0.25, -0.26), (0.95, 0.93), (14, 14), ("G1A", "G2Q", "G3A"))
+    assert not mixed.holds and flat.holds
+    _, v, _ = _scale_needs_its_signature(_sensor_fit(np.log(0.78)), ok, -649.0, {"G2A": mixed})
+    assert not v.accepted and "same factor in every band" in v.reasons[0] and "x0.78" in v.reasons[0]
+    assert _scale_needs_its_signature(_sensor_fit(np.log(0.78)), ok, -649.0, {"G2A": flat})[1].accepted
+    assert _scale_needs_its_signature(_sensor_fit(np.log(0.95)), ok, -649.0, {"G2A": mixed})[1].accepted
+    # not judged without peers (no signature) nor for a dropout
+    assert _scale_needs_its_signature(_sensor_fit(np.log(0.78)), ok, -649.0, {"G2A": None})[1].accepted
+    assert _scale_needs_its_signature(_sensor_fit(np.log(0.78), label="sensor_error@G2A.dropout"), ok, -649.0,
+                                      {"G2A": mixed})[1].accepted

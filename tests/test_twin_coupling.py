@@ -178,28 +178,28 @@ def test_free_decay_rings_at_the_girder_eigenfrequencies_at_the_default_step(pre
     """After the vehicle leaves a span, the span rings at its FE eigenfrequencies with its modal
     damping: checked at the default 1 ms step on a quarter-span accelerometer (modes 1-3 of the
     elastic-bearing girder, 23-200 Hz). The plain average-acceleration scheme rings
-    (2/h) arctan(w h/2): 2.7 % low at 93 Hz, 6 % at 200 Hz (``prewarp=False``: shown to fail)."""
+    (2/h) arctan(w h/2): 2.7 % low at 93 Hz, 11 % at 200 Hz (``prewarp=False``: shown to fail).
+    The damped-sinusoid fit is the test's own (independent of maglev_ros.modal, which is tested on
+    twin output elsewhere)."""
     from dataclasses import replace
     cfg = twin_config()
     cfg = replace(cfg, numerics=replace(cfg.numerics, modal_prewarp=prewarp))
     line = [{"id": "S1", "start_m": 0.0, "length_m": L}]
     v = 25.0
-    res = simulate_pass(cfg, line, v, None, {"q": L / 4}, fs_out_hz=1000.0, dt_max_s=1e-3)
+    offs = np.asarray(cfg.vehicle.magnet_offsets_m)
+    x0 = -2.0 - offs.max()                                   # front magnet 2 m before the span
+    t_off = (L + 0.5 - offs.min() - x0) / v                  # rear magnet 0.5 m past the span end
+    res = simulate_pass(cfg, line, v, None, {"q": L / 4}, duration_s=t_off + 1.0, fs_out_hz=1000.0,
+                        start_position_m=x0, dt_max_s=1e-3)
     g = Guideway([SpanSpec("S1", 0.0, L, cfg.guideway)], cfg.numerics.n_elements_per_span)
     mb = g.modes(cfg.numerics.mode_cutoff_hz, 1)
     f_fe, z_fe = mb.freq_hz[:3], mb.damping_ratio[:3]
     assert 20 < f_fe[0] < 30 and 80 < f_fe[1] < 110 and f_fe[2] < 300
-    # free decay: from when the rear magnet has left the span, 1 s (only outputs after it)
-    x_rear = res.position_m + min(cfg.vehicle.magnet_offsets_m)
-    off = np.flatnonzero(x_rear > L + 0.5)
-    assert off.size, "the vehicle never left the span"
-    t_end = res.time_s[off[0]] + 1.0
-    st = TwinStepper(cfg, line, sensors={"q": L / 4}, fs_out_hz=1000.0, dt_max_s=1e-3, start_position_m=
-                     res.position_m[0], start_speed_mps=v)
-    full = st.advance(t_end)
-    sel = full.time_s >= res.time_s[off[0]]
-    t = full.time_s[sel] - full.time_s[sel][0]
-    y = full.guideway_accel_mps2[sel, 0]
+    # free decay: 1 s from when the rear magnet has left the span
+    sel = res.time_s >= res.time_s[0] + t_off
+    assert sel.sum() > 900 and np.all(res.position_m[sel] + offs.min() > L + 0.4)
+    t = res.time_s[sel] - res.time_s[sel][0]
+    y = res.guideway_accel_mps2[sel, 0]
     f_fit, z_fit = _damped_modes_fit(t, y, f_fe, float(np.mean(z_fe)))
     err = np.abs(f_fit / f_fe - 1)
     if tol is None:

@@ -248,10 +248,10 @@ def test_no_resonator_is_fitted_below_the_quasi_static_band():
     searched = []
 
     class Finder:
-        def fit(self, base, tr, te, band, span_index, search):
+        def fit(self, base, tr, te, band, span_index, search, **kw):
             searched.append((tuple(band), search))
             return SimpleNamespace(accepted=False, verdict=None, to_dict=lambda: {"accepted": False},
-                                   explanation=lambda band: "not supported.")
+                                   explanation=lambda band, what=None: "not supported.")
     base = SimpleNamespace(spec=SimpleNamespace(spans=(SimpleNamespace(span_id="S1"), SimpleNamespace(span_id="S2"))))
     model_discoveries([finding(0.0, 3.0), finding(0.0, 6.0)], base, [], [], None, max_resonators=3,
                       finder=Finder(), worst_span_fallback=False)

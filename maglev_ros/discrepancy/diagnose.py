@@ -37,7 +37,7 @@ from maglev_ros.errors import UserError
 from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
-from .discovery import discover, model_discoveries, persistent_findings, resonator_explainable
+from .discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
 from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
                        residual_rows, residual_vector, split_frames)
 from .fitting import (IDENTIFIABLE_LLR, BaseFit, HypFit, bic, fit_base, fit_gains, fit_hypothesis, safe_residual,
@@ -48,6 +48,7 @@ from .irregularity import with_twin_irregularity
 from .recording import GROUP_UNIT, Recording, require_pass
 from .scale_signature import (MIN_ABS_LOG_SCALE, PeerReferencedFit, ScaleSignature, peer_referenced_fit,
                               scale_signature)
+from .span_modes import detuned_spans, span_mode_shifts
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -175,6 +176,9 @@ class Diagnoser:
         # band misfits of one girder sensor that persist over whole passes (too weak for any frame)
         persistent = persistent_mismatches(rd_all, mp_base)
         found.extend(persistent)
+        # spans whose first mode rings off the others' in the free decay after the passes (reported;
+        # a finding for the discovery below, not a reason to fit more catalogue hypotheses)
+        detuned = detuned_spans(span_mode_shifts(passes, base.spec))
         # ---- hypotheses
         hyps = self._hypotheses(base, rd_train)
         tried = []
@@ -463,6 +467,7 @@ class Diagnoser:
         if not chosen:
             disc = discover(maps_after, guideway_modal(final_spec), base_spec_spans(final_spec))
             disc += persistent_findings(persistent, guideway_modal(final_spec), base_spec_spans(final_spec), disc)
+            disc += mode_shift_findings(detuned, guideway_modal(final_spec), base_spec_spans(final_spec))
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
                 # the catalogue's gates; reported in ``discovery`` only, never as missing_physics
@@ -545,7 +550,7 @@ class Diagnoser:
             "schema": SCHEMA,
             "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
             "fit_after": {"nrmse": nr_after, "per_channel": pc_after},
-            "mismatches": [m.to_dict() for m in found],
+            "mismatches": [m.to_dict() for m in found + [s.to_mismatch() for s in detuned]],
             "missing_physics": missing,
             "rejected": rejected,
             "updated_parameters": final_spec.calibrated_values(),

@@ -20,12 +20,23 @@ Then each located finding is MODELLED and judged by the catalogue's acceptance g
   are not needed, and the project avoids a scikit-learn dependency. Linear terms (g, g') are kept
   in the regression as nuisance (they are the calibrated gains kp, kv in disguise) but only
   nonlinear terms are ever reported.
+A span whose first mode rings off the other spans' in the free decay after every pass
+(:mod:`.span_modes`) is a finding of its own, ranked first (the most specific evidence of a local
+change of one girder). A LOWERED mode is modelled as a mass added to that span: rigidly attached,
+its mass at every trial position following from the measured mode (the span's twin mode moved by
+the measured shift relative to the other spans), so the position is the only shape parameter fitted;
+an attachment tuned well above the mode acts on it exactly so, and fitted freely its own frequency
+and damping wandered along flat directions (a 55 Hz, 3 % attachment: the same training fit from 35
+to 110 Hz; a free fit settled at 0.3 % damping at 40 Hz where one pass happened to excite it).
+Which own frequencies would fit as well is then profiled (:func:`.resonator.frequency_profile`) and
+reported as the finding's band. A RAISED mode is searched as a resonator tuned below it.
 A finding is "modelled" only when its model passes the gates; otherwise it stays a located,
 unexplained band/place with the reasons its best model was rejected.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -176,6 +187,30 @@ def persistent_findings(persistent, modal, spans, disc: list[dict]) -> list[dict
     return out
 
 
+def mode_shift_findings(detuned, modal, spans) -> list[dict]:
+    """Findings from spans whose first mode rings off the other spans' in the free decay after every
+    pass (:func:`.span_modes.detuned_spans`): the most specific evidence of a local change of one
+    girder (its mass, stiffness or supports), ranked before every band finding."""
+    out = []
+    for s in detuned:
+        sp = next((x for x in spans if x.span_id == s.span_id), None)
+        if sp is None:
+            continue
+        m = s.to_mismatch()
+        f0, f1 = m.frequency_hz
+        out.append({"kind": "mode_shift", "frequency_hz": [float(f0), float(f1)], "channels": list(s.channels),
+                    "sensed_on": "guideway", "location": {"position_m": [sp.start_m, sp.end_m], "span": sp.span_id},
+                    "time_s": [float(m.time_s[0]), float(m.time_s[1])],
+                    "twin_modes_in_band_hz": [round(float(s.twin_hz), 3)], "score": float(m.severity),
+                    "rank": 1, "mode_shift": float(s.shift),
+                    # the span's first mode in the twin's terms: its own eigenfrequency moved by the shift
+                    # relative to the other spans (what they share is the calibration's)
+                    "target_hz": float(s.twin_hz * math.exp(s.shift)),
+                    "explanation": f"The twin misses a local change of span {sp.span_id}: {s.words()}. No catalogue "
+                                   f"effect explains it; inspect span {sp.span_id} for it."})
+    return out
+
+
 def _sensor_x(rec, ch, t_s: np.ndarray):
     """x along the line of a vehicle sensor at times ``t_s`` (its magnet's or body point's offset
     from the vehicle reference point), None without position or offset."""
@@ -218,14 +253,14 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                       finder=None, log=None, worst_span_fallback: bool = True) -> list[dict]:
     """Fit a model to each located finding (see module doc); returns the entries, updated in place
     with ``model`` (what was fitted, its parameters and evidence) and a rail-engineer explanation."""
-    from .resonator import ResonatorFinder
+    from .resonator import MAX_ATTACHMENT_DAMPING, ResonatorFinder, frequency_profile, supported_band
     finder = finder or ResonatorFinder(acceptance, n_freq=6)
     spans = base.spec.spans
     idx = {s.span_id: i for i, s in enumerate(spans)}
     # girder resonators for what the guideway sensors found on a span; what only the vehicle felt
     # (even while crossing one span) goes to the suspension-term regression below
     cands = [d for d in disc if d["location"].get("span") in idx and resonator_explainable(d)]
-    cands.sort(key=lambda d: -d["score"])
+    cands.sort(key=lambda d: (-d.get("rank", 0), -d["score"]))
     seen = set()
     fits = []
     for d in cands:
@@ -242,7 +277,25 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             top = 2.5 if d.get("persistent") else 1.12
             search = ((max(RESONATOR_MIN_HZ, f0 * 0.88), f1 * 1.12) if d["kind"] == "resonance"
                       else (max(2.0, 0.3 * f0), f1 * top))
-            rf = finder.fit(base, rd_train, rd_test, d["frequency_hz"], idx[d["location"]["span"]], search)
+            zeta_max, band_fit = None, d["frequency_hz"]
+            rigid = d["kind"] == "mode_shift" and d["mode_shift"] < 0
+            if d["kind"] == "mode_shift":
+                # the misfit a detuned mode leaves is in the bands around it (its energy moved there)
+                band_fit = (f0 * 0.85, f1 * 1.15)
+                # lowered: an added mass, its size from the measured mode (module docstring); raised: a
+                # component tuned below the mode, searched below it
+                search = None if rigid else (RESONATOR_MIN_HZ, f0 * 0.85)
+                zeta_max = MAX_ATTACHMENT_DAMPING
+            rf = finder.fit(base, rd_train, rd_test, band_fit, idx[d["location"]["span"]], search,
+                            zeta_max=zeta_max, rigid=rigid, target_hz=d.get("target_hz"))
+            if rf.accepted and rigid:
+                # which own frequencies would fit as well? (a component tuned above the mode: mass-like)
+                f_top = _usable_top_hz(rd_train, d["channels"])
+                prof = frequency_profile(base, rd_train, rf, np.geomspace(f1 * 1.2, f_top, 7),
+                                         target_hz=d.get("target_hz"))
+                lo, hi = supported_band(prof + [(f_top, rf.train_gain)], rf.train_gain)
+                if np.isfinite(lo):
+                    rf = replace(rf, supported_hz=(lo, hi))
         except Exception as exc:          # an unstable twin etc.: the finding stays located only
             d["model"] = {"kind": "added_resonator", "accepted": False, "reasons": [f"fit failed ({exc})"]}
             if log:
@@ -272,19 +325,27 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
         if best is not None and rf is not best[0] and rf.accepted:
             d["model"]["accepted"] = False
             d["model"]["reasons"] = [f"also improves the held-out fit, but less than the resonator on span "
-                                     f"{best[0].span_id} at {best[0].resonator.freq_hz:.1f} Hz"]
+                                     f"{best[0].span_id} at "
+                                     f"{'(rigid)' if best[0].resonator.rigid else f'{best[0].resonator.freq_hz:.1f} Hz'}"]
         if d["model"]["accepted"]:
             # the finding is now the modelled resonator: its band is where the resonator lives; the
             # band where the residual showed (e.g. an existing mode it detunes) is kept beside it
             d["kind"] = "added_resonator"
             d["residual_band_hz"] = list(d["frequency_hz"])
             f = rf.resonator.freq_hz
-            d["frequency_hz"] = [float(f * (1 - max(0.05, 2 * rf.resonator.damping_ratio))),
-                                 float(f * (1 + max(0.05, 2 * rf.resonator.damping_ratio)))]
-            d["explanation"] = rf.explanation(d["residual_band_hz"])
+            if rf.resonator.rigid:
+                d["frequency_hz"] = list(d["residual_band_hz"])
+            else:
+                d["frequency_hz"] = [float(f * (1 - max(0.05, 2 * rf.resonator.damping_ratio))),
+                                     float(f * (1 + max(0.05, 2 * rf.resonator.damping_ratio)))]
+            if rf.supported_hz:
+                # an added mass: the own frequencies the data support (up to the usable band's top when
+                # a rigid mass fits as well), not a sharper claim than they make
+                d["frequency_hz"] = [float(x) for x in rf.supported_hz]
+            d["explanation"] = rf.explanation(d["residual_band_hz"], _what(d))
             d["location"] = {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id}
         else:
-            d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"])
+            d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"], _what(d))
     def unplaced(d):
         return d.get("sensed_on") == "vehicle" or not d["location"].get("span")
     if any(unplaced(d) for d in disc):
@@ -303,6 +364,22 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                     d["explanation"] = d["explanation"] + " " + terms["explanation"]
                     break
     return disc
+
+
+def _what(d: dict) -> str | None:
+    """What a finding is, in words, where its band alone does not say it (a detuned first mode)."""
+    if d.get("mode_shift") is None:
+        return None
+    lo, hi = d.get("residual_band_hz") or d["frequency_hz"]
+    return (f"why the span's first mode rings {100 * (math.exp(d['mode_shift']) - 1):+.1f} % off the other spans' "
+            f"({lo:.2f}-{hi:.2f} Hz, measured and twin)")
+
+
+def _usable_top_hz(rds, channels) -> float:
+    """Top of the usable bands of ``channels`` (the anti-alias filter's pass band)."""
+    rd = rds[0]
+    e = rd.grid.edges_hz
+    return float(max(e[1:][rd.masks[c]].max() for c in channels if c in rd.masks))
 
 
 def _worst_span_finding(base, rds) -> dict | None:
@@ -324,7 +401,7 @@ def _worst_span_finding(base, rds) -> dict | None:
     sp = next(s for s in base.spec.spans if s.span_id == sid)
     e = rd.grid.edges_hz
     chans = [n for n, c in rd.rec.channels.items() if c.group.startswith("guideway") and _span_of(c.position_m, [sp])]
-    f_top = float(max(e[1:][rd.masks[c]].max() for c in chans))
+    f_top = _usable_top_hz(rds, chans)
     return {"kind": "resonance", "frequency_hz": [float(e[2]), f_top], "channels": chans,
             "location": {"position_m": [sp.start_m, sp.end_m], "span": sid},
             "time_s": [float(rd.rec.t0_s), float(rd.rec.t1_s)], "twin_modes_in_band_hz": [], "score": 0.0,

@@ -8,8 +8,10 @@ Per effect: cases, correct effect, wrong effect, missed, localization error (gir
 place centre - true place| in m; sensor_error: share with the right channel), median held-out NRMSE
 reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``),
 cases naming a further effect besides the concealed one (+extra);
-clean cases: false alarms (and accepted open-ended discoveries); out-of-catalogue: located (band holds the true frequency and
-the place/span is right) and forced into a catalogue name (must be 0). The "heldout" split uses seeds,
+clean cases: false alarms (and accepted open-ended discoveries); out-of-catalogue: located (girder attachment: the
+place/span is right and the band holds its own frequency or a band where it changes the recording, both counted; cubic air-spring term ("suspension_cubic"): a discovery sensed on the
+vehicle or a mismatch on vehicle channels only, in a band overlapping the cubic force's 90 % power band) and forced into
+a catalogue name (must be 0). The "heldout" split uses seeds,
 speeds, FE mesh, noise colour, anti-alias filter and controller lag never used while tuning (its cases
 were inspected in session 5); the "blind" split (session 6) also other PSDs, locations and magnitudes,
 and is never tuned on. "both" = tune + heldout.
@@ -48,7 +50,7 @@ def score(results):
     from discrepancy_cases import OOC
     rows = {}
     clean = {"n": 0, "false_alarms": 0, "discoveries": 0}
-    ooc = {"n": 0, "located": 0, "forced": 0}
+    ooc = {"n": 0, "located": 0, "forced": 0, "cases": [], "own_frequency": 0, "signature": 0}
     gains_all, gains_ch = [], []
     for r in results:
         eff, truth, rep = r["effect"], r["truth"], r["report"]
@@ -63,20 +65,14 @@ def score(results):
         if eff in OOC:
             ooc["n"] += 1
             ooc["forced"] += bool(found)
-            f_true = truth["params"]["freq_hz"]
-            span = truth["location"]["span"]
-            x_true = truth["location"]["position_m"]
-            loc = False
-            for m in rep.get("discovery", []):
-                f0, f1 = m["frequency_hz"]
-                if f0 * 0.85 <= f_true <= f1 * 1.15 and (m["location"]["span"] == span):
-                    loc = True
-            for m in rep["mismatches"]:
-                fb, pb = m["frequency_hz"], m["position_m"]
-                if fb and pb and fb[0] * 0.85 <= f_true <= fb[1] * 1.15 and pb[0] - 3 <= x_true <= pb[1] + 3 \
-                        and (pb[1] - pb[0]) < 30:
-                    loc = True
+            if eff == "suspension_cubic":
+                loc, line = _locate_on_vehicle(r["case"], truth, rep)
+                ooc["located"] += loc
+                ooc["cases"].append(line)
+                continue
+            loc, line = _locate_attachment(r["case"], truth, rep, ooc)
             ooc["located"] += loc
+            ooc["cases"].append(line)
             continue
         row = rows.setdefault(eff, {"n": 0, "correct": 0, "wrong": 0, "missed": 0, "extra": 0, "loc_err": [],
                                     "gain": [], "gain_ch": []})
@@ -113,6 +109,81 @@ def score(results):
     return rows, clean, ooc, gains_all, gains_ch
 
 
+def _is_vehicle_channel(name: str) -> bool:
+    """Contract channel names: magnets M<k>A / M<k>G, car-body accelerometers B<k>A; guideway G..."""
+    return name[:1] in ("M", "B")
+
+
+def _locate_on_vehicle(case_id, truth, rep):
+    """(located, printed line) of an out-of-catalogue vehicle effect (``suspension_cubic``): located
+    when a discovery entry sensed on the vehicle, or a mismatch all of whose channels are vehicle
+    channels, has a band overlapping the truth's ``band_hz`` (where the cubic force has 90 % of its
+    power on the fastest pass)."""
+    p = truth["params"]
+    b0, b1 = p["band_hz"]
+    how = []
+    for m in rep.get("discovery", []):
+        f0, f1 = m["frequency_hz"]
+        if m.get("sensed_on") == "vehicle" and f0 <= b1 and b0 <= f1:
+            acc = (m.get("model") or {}).get("accepted")
+            how.append(f"discovery {m['kind']} {f0:.1f}-{f1:.1f} Hz on the vehicle"
+                       + (f" ({', '.join(m.get('channels', [])[:3])})" if m.get("channels") else "")
+                       + (", model accepted" if acc else ""))
+    for m in rep["mismatches"]:
+        fb, ch = m["frequency_hz"], m["channels"]
+        if fb and ch and all(_is_vehicle_channel(c) for c in ch) and fb[0] <= b1 and b0 <= fb[1]:
+            how.append(f"mismatch {fb[0]:.1f}-{fb[1]:.1f} Hz on {', '.join(ch[:3])}")
+    line = (f"{case_id}: truth cubic air-spring term (cubic_ratio {p.get('cubic_ratio')}, force share at the "
+            f"peak {p.get('cubic_share_peak', float('nan')):.2f}) in {b0:.1f}-{b1:.1f} Hz on the vehicle: "
+            + ("; ".join(how[:2]) if how else "NOT located"))
+    return bool(how), line
+
+
+def _locate_attachment(case: str, truth: dict, rep: dict, ooc: dict) -> tuple[bool, str]:
+    """A girder attachment is located when a discovery on its span, or a mismatch placed within 3 m
+    of it (and narrower than 30 m), gives a band (+-15 %) that holds either its own frequency or a
+    band where it changes the recording (``signature_bands_hz``: its span's sensors with vs without
+    it, from the generator's noise-free truth; a 3 % mass tuned well above the span's first mode shows
+    mainly as that mode detuned, 18-31 Hz, and hardly at its own frequency). Both are counted."""
+    f_true = truth["params"]["freq_hz"]
+    sig = truth["params"].get("signature_bands_hz") or []
+    span = truth["location"]["span"]
+    x_true = truth["location"]["position_m"]
+    own = shows = False
+    how = []             # what located it and the band given (a wide band is a weak statement: shown)
+
+    def judge(f0, f1):
+        a, b = f0 * 0.85, f1 * 1.15
+        return a <= f_true <= b, any(a < s1 and s0 < b for s0, s1 in sig)
+    for m in rep.get("discovery", []):
+        if m["location"]["span"] != span:
+            continue
+        o, w = judge(*m["frequency_hz"])
+        if o or w:
+            own, shows = own or o, shows or w
+            mod = m.get("model") or {}
+            x = mod.get("position_m") if mod.get("accepted") else None
+            how.append(f"discovery {m['kind']} {m['frequency_hz'][0]:.1f}-{m['frequency_hz'][1]:.1f} Hz on {span}"
+                       + (f", x {x:.1f} m (err {abs(x - x_true):.1f} m; mirror "
+                          f"{min(abs(p - x_true) for p in mod['position_range_m']):.1f} m), mass ratio "
+                          f"{mod['mass_ratio']:.3f}" if x is not None else ""))
+    for m in rep["mismatches"]:
+        fb, pb = m["frequency_hz"], m["position_m"]
+        if fb and pb and pb[0] - 3 <= x_true <= pb[1] + 3 and (pb[1] - pb[0]) < 30:
+            o, w = judge(*fb)
+            if o or w:
+                own, shows = own or o, shows or w
+                how.append(f"mismatch {fb[0]:.1f}-{fb[1]:.1f} Hz at {pb[0]:.1f}-{pb[1]:.1f} m")
+    ooc["own_frequency"] += own
+    ooc["signature"] += shows
+    sig_s = ", ".join(f"{a:g}-{b:g}" for a, b in sig) or "?"
+    return own or shows, (f"{case}: truth {f_true:g} Hz on {span} at {x_true:.1f} m, mass ratio "
+                          f"{truth['params'].get('mass_ratio')}, shows at {sig_s} Hz: "
+                          + ("; ".join(how[:2]) if how else "NOT located")
+                          + (f" [own frequency: {'yes' if own else 'no'}, where it shows: {'yes' if shows else 'no'}]"
+                             if how else ""))
+
+
 def print_table(title, results):
     rows, clean, ooc, gains, gains_ch = score(results)
     print(f"\n== {title}: {len(results)} cases ==")
@@ -129,7 +200,11 @@ def print_table(title, results):
         nc += r["n"]; ncorr += r["correct"]
     print(f"{'clean (false alarms)':24s} {clean['n']:3d} {'':7s} {'':5s} {'':6s} false alarms: {clean['false_alarms']}"
           f"  accepted discoveries: {clean['discoveries']}")
-    print(f"{'out-of-catalogue':24s} {ooc['n']:3d} located: {ooc['located']}  forced into a catalogue name: {ooc['forced']}")
+    print(f"{'out-of-catalogue':24s} {ooc['n']:3d} located: {ooc['located']} (attachments in a band holding their own "
+          f"frequency: {ooc['own_frequency']}, in a band where they change the recording: {ooc['signature']})  forced "
+          f"into a catalogue name: {ooc['forced']}")
+    for line in ooc.get("cases", []):
+        print(f"    {line}")
     fa = clean["false_alarms"] / clean["n"] if clean["n"] else 0.0
     med = float(np.median(gains)) if gains else 0.0
     med_ch = float(np.median(gains_ch)) if gains_ch else 0.0

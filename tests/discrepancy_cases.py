@@ -15,7 +15,10 @@ pad in series with the nominal bearing, ambient vibration as random coloured poi
 random places on every girder (modal superposition), sensor faults on the recorded samples, a
 girder attachment (tuned-mass-like resonator) by an augmented FE eigenproblem. Magnet
 nonlinearity is the twin kernel's smooth current saturation with a headroom set from the
-truth's own unsaturated peak current demand on the fastest pass.
+truth's own unsaturated peak current demand on the fastest pass. A cubic suspension term (out of
+the catalogue: ``suspension_cubic``) stiffens the secondary air springs by k3 d^3, added here by
+operator splitting around the linear truth stepper (:func:`advance_cubic`), with k3 set from the
+linear truth's own largest air-spring deflection on the fastest pass.
 
 Every case runs over a random guideway irregularity (as every real line has one; the diagnosis
 must then go through the irregularity it reconstructs from each pass): one profile per case,
@@ -49,13 +52,13 @@ CATEGORY = {"bearing_stiffness": "boundary_condition", "control_delay": "control
             "magnet_nonlinearity": "magnetic_force", "ambient_excitation": "excitation",
             "girder_stiffness_loss": "guideway_structure", "carbody_flexibility": "vehicle_structure",
             "sensor_error": "instrumentation"}
-OOC = ("girder_attachment",)
+OOC = ("girder_attachment", "suspension_cubic")
 
 
 @dataclass
 class Case:
     case_id: str
-    effect: str | None                  # catalogue name, "girder_attachment" (out of catalogue) or None
+    effect: str | None                  # catalogue name, one of OOC (out of catalogue) or None
     magnitude: float
     truth: dict
     ambient: Recording
@@ -223,6 +226,115 @@ def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, varian
     return st
 
 
+def secondary_springs(model) -> tuple[tuple, np.ndarray]:
+    """The secondary air springs of a ``VehicleModel`` and their rows T (n_sec, n_dof): d = T z is
+    each spring's relative vertical displacement from static equilibrium (z: the DOFs).
+
+    Found by topology, not by name: the levitation frames are the bodies a magnet's body is joined
+    to (primary suspension), the car body is the heaviest body, and a secondary air spring is a
+    connection joining the car body to a frame. T is built as ``vehicle.assemble`` builds a
+    connection's row: point row of ``body_a`` at the spring's x minus that of ``body_b`` (default
+    model: frame minus car, so d > 0 compresses the spring)."""
+    mag_bodies = {m.body for m in model.magnets}
+    frames = ({c.body_b for c in model.connections if c.body_a in mag_bodies}
+              | {c.body_a for c in model.connections if c.body_b in mag_bodies}) - mag_bodies
+    car = max(model.bodies, key=lambda b: b.mass_kg).name
+    sec = tuple(c for c in model.connections if {c.body_a, c.body_b} in ({car, f} for f in frames))
+    if not sec:
+        raise RuntimeError("suspension_cubic: no connection joins the car body to a levitation frame")
+    rows = np.stack([model.point_row(c.body_a, c.x_m) - model.point_row(c.body_b, c.x_m) for c in sec])
+    return sec, rows
+
+
+def advance_cubic(st: TwinStepper, t_end_s: float, v: float, k3: float, kick_every: int = 1
+                  ) -> tuple[PassResult, np.ndarray]:
+    """``st.advance(t_end_s, v)`` with a cubic force F = k3 d^3 added in every secondary air spring
+    (stiffening: it acts like the linear spring force k d, equal and opposite on car body and frame),
+    by operator splitting: the linear truth is advanced ``kick_every`` output samples (1 ms at the
+    1 kHz truth rate; the stepper cannot stop between output samples), then the impulse of the
+    cubic force over that interval is added to the DOF velocities, dv = -M^-1 T^T F dt, with d from
+    the state at the end of the interval. M is the model's mass matrix (the closed loop's
+    acceleration feedback only adds mass on magnet DOFs, which no air spring touches).
+
+    The recorded DOF accelerations (``vehicle_acc_mps2``, car-body accelerometers) get the cubic
+    force's instantaneous acceleration -M^-1 T^T F added (the stepper's output is the linear model's);
+    magnet accelerations, gaps and currents need nothing (no air spring acts on a magnet's body).
+    Returns the concatenated PassResult (same form as one ``advance``) and F (n, n_sec) [N] at the
+    output samples. With k3 = 0 the result equals one ``advance`` call to floating point (the
+    vehicle position is summed per call instead of per block)."""
+    model = st.vehicle.model
+    nd = model.n_dof
+    _, rows = secondary_springs(model)
+    minv_tt = np.linalg.solve(model.mass, rows.T)                   # (n_dof, n_sec)
+    fs = st.fs_out_hz
+    k_now = st._k // st.n_sub
+    k_end = int(math.floor((t_end_s - st.t0_s) * fs + 1e-9))
+    parts, forces = [], []
+    while k_now < k_end:
+        k_next = min(k_now + kick_every, k_end)
+        r = st.advance(st.t0_s + (k_next + 0.5) / fs, v)
+        x = st._x.copy()
+        f = k3 * (rows @ x[:nd]) ** 3
+        x[nd:2 * nd] -= minv_tt @ f * ((k_next - k_now) / fs)
+        st.set_vehicle_state(x)
+        fr = k3 * (r.vehicle_disp_m @ rows.T) ** 3                    # at the recorded samples
+        parts.append(replace(r, vehicle_acc_mps2=r.vehicle_acc_mps2 - fr @ minv_tt.T))
+        forces.append(fr)
+        k_now = k_next
+    if not parts:
+        return st.advance(t_end_s, v), np.zeros((0, rows.shape[0]))
+    return PassResult.concat(parts), np.concatenate(forces, axis=0)
+
+
+def power_band(x: np.ndarray, fs: float, share: float = 0.9) -> tuple[float, float]:
+    """Band holding the central ``share`` of the power of x (n,) or (n, k) (summed over columns):
+    Welch PSD (4 s segments, mean removed), cumulative power from (1 - share)/2 to (1 + share)/2."""
+    x = np.asarray(x, float).reshape(len(x), -1)
+    f, p = signal.welch(x, fs=fs, nperseg=min(4096, x.shape[0]), axis=0)
+    c = np.cumsum(p.sum(axis=1))
+    if not c[-1] > 0:
+        return 0.0, 0.0                   # no power (k3 = 0)
+    c = c / c[-1]
+    lo = f[int(np.searchsorted(c, 0.5 * (1 - share)))]
+    hi = f[min(int(np.searchsorted(c, 0.5 * (1 + share))), f.size - 1)]
+    return float(lo), float(hi)
+
+
+# the diagnosis' band grid (maglev_ros.discrepancy.features.BAND_EDGES_HZ, copied: the generator
+# states its own reference)
+SIGNATURE_EDGES_HZ = (3.0, 6.0, 10.0, 14.0, 18.0, 22.0, 26.0, 31.0, 37.0, 44.0, 52.0, 62.0, 74.0, 88.0, 105.0,
+                      125.0, 150.0)
+
+
+def signature_bands(sig_eff: dict, sig_none: dict, sensors: dict, span_id: str, fs_hz: float,
+                    noise_std: float, min_rel: float = 0.15, min_snr: float = 3.0) -> list[list[float]]:
+    """Bands where an effect changes the recording of its span's guideway accelerometers: the band
+    amplitude (Welch, whole pass) with the effect differs from the same pass without it by at least
+    ``min_rel``, where the signal stands ``min_snr`` above the sensors' white noise (what an
+    instrument could see). Adjacent bands merged; [[f0, f1], ...]."""
+    names = [k for k, s in sensors.items() if s.get("span") == span_id and s["quantity"] == "acceleration"
+             and s["topic"] == "/testline/guideway/accel"]
+    e = np.asarray(SIGNATURE_EDGES_HZ)
+    hit = np.zeros(e.size - 1, bool)
+    for k in names:
+        f, pa = signal.welch(sig_eff[k], fs_hz, nperseg=1024)
+        _, pb = signal.welch(sig_none[k], fs_hz, nperseg=1024)
+        df = f[1] - f[0]
+        for b in range(e.size - 1):
+            m = (f >= e[b]) & (f < e[b + 1])
+            a, c = pa[m].sum() * df, pb[m].sum() * df
+            noise = noise_std ** 2 * (e[b + 1] - e[b]) / (FS_OUT / 2)
+            if max(a, c) >= min_snr * noise and abs(math.sqrt(a / max(c, 1e-300)) - 1) >= min_rel:
+                hit[b] = True
+    out: list[list[float]] = []
+    for b in np.flatnonzero(hit):
+        if out and out[-1][1] == e[b]:
+            out[-1][1] = float(e[b + 1])
+        else:
+            out.append([float(e[b]), float(e[b + 1])])
+    return out
+
+
 def _noise(rng, n, std, colour: str) -> np.ndarray:
     w = rng.standard_normal(n)
     if colour == "pink":
@@ -352,6 +464,19 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         res = st.advance((n_spans * L_SPAN - offs_all.min() + v * lead - x0) / v, v)
         tp["peak_demand_a"] = float(np.abs(res.magnet_current_a - st.vehicle.levitation.static_current_a).max())
         tp["current_limit_a"] = tp["headroom"] * tp["peak_demand_a"]
+    if effect == "suspension_cubic":
+        # k3 from the LINEAR truth's largest air-spring deflection on the fastest pass: the cubic
+        # force is cubic_ratio x the linear spring force k d_max at that deflection
+        v = max(speeds)
+        lead = _lead_s(v, n_spans, offs_all, variant)
+        x0 = -offs_all.max() - v * lead
+        st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, None, tp, variant, irr)
+        res = st.advance((n_spans * L_SPAN - offs_all.min() + v * lead - x0) / v, v)
+        sec, rows = secondary_springs(st.vehicle.model)
+        k_sec = float(np.mean([c.stiffness_n_per_m for c in sec]))
+        tp["k_secondary_n_per_m"] = k_sec
+        tp["d_max"] = float(np.abs(res.vehicle_disp_m @ rows.T).max())         # [m]
+        tp["k3"] = float(tp["cubic_ratio"]) * k_sec / tp["d_max"] ** 2         # [N/m^3]
     for v, md in zip(speeds, md_pass):
         offs = np.array(cfg_true.vehicle.magnet_offsets_m)
         # approach/departure recorded (the irregularity reconstruction needs ~6 s at 0.8 Hz)
@@ -359,11 +484,29 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         x0 = -offs.max() - v * lead
         dur = (n_spans * L_SPAN - offs.min() + v * lead - x0) / v
         st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, effect, tp, variant, irr)
-        res = st.advance(dur, v)
+        if effect == "suspension_cubic":
+            res, f3 = advance_cubic(st, dur, v, tp["k3"])
+            if v == max(speeds):
+                # where the cubic force has its power (90 % band) and its size against the linear
+                # air-spring force k d, on the fastest pass
+                _, rows = secondary_springs(st.vehicle.model)
+                f_lin = tp["k_secondary_n_per_m"] * (res.vehicle_disp_m @ rows.T)
+                tp["band_hz"] = list(power_band(f3, 1.0 / float(np.median(np.diff(res.time_s)))))
+                tp["cubic_share_peak"] = float(np.abs(f3).max() / np.abs(f_lin).max())
+                tp["cubic_share_rms"] = float(np.sqrt(np.mean(f3 ** 2) / np.mean(f_lin ** 2)))
+        else:
+            res = st.advance(dur, v)
         if not np.all(np.abs(res.magnet_gap_m - 0.010) < 0.008):
             raise RuntimeError(f"{case_id}: truth vehicle lost levitation at {v} m/s ({effect}, {tp})")
         t_hi = res.time_s
         sig_hi = truth_signals(res, md["sensors"], st.vehicle.model)
+        if effect == "girder_attachment" and v == max(speeds):
+            # where the attachment shows: the same pass without it (noise-free truth signals)
+            st0 = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, None, tp, variant, irr)
+            sig0 = truth_signals(st0.advance(dur, v), md["sensors"], st0.vehicle.model)
+            tp["signature_bands_hz"] = signature_bands(sig_hi, sig0, md["sensors"], f"S{tp['span_index'] + 1}",
+                                                       1.0 / float(np.median(np.diff(t_hi))),
+                                                       NOISE_STD["guideway_accel"] * noise_scale)
         if effect == "ambient_excitation":
             names = [k for k in md["sensors"] if md["sensors"][k]["topic"].startswith("/testline/guideway")]
             d, a = _ambient_response(rng, st.modal, spans, [gsens[k] for k in names], t_hi.size, 1e-3,
@@ -416,6 +559,8 @@ def _truth_location(effect, tp) -> dict | None:
         return {"position_m": (i + e) * L_SPAN, "span": f"S{i + 1}"}
     if effect == "sensor_error":
         return {"channel": tp["channel"]}
+    if effect == "suspension_cubic":
+        return {"place": "vehicle"}
     return None
 
 
@@ -435,17 +580,20 @@ SPLITS = {
                  bearing_ends=((0, 1), (2, 0)), factors=(0.02, 0.1), ambient=(0.02, 0.05, 0.1),
                  sensors=("G2A", "M1A", "G3Q", "M8G"), scales=(1.35, 0.6), lags=(0.004, 0.008),
                  bends=(6.0, 9.0), attachments=((38.0, 1), (55.0, 0)), headrooms=(1.2, 1.4, 1.7),
-                 bend2=12.0, lag2=0.006, bearing2=((1, 1), 0.3), attachment2=(70.0, 2, 0.65)),
+                 bend2=12.0, lag2=0.006, bearing2=((1, 1), 0.3), attachment2=(70.0, 2, 0.65),
+                 cubics=(0.5, 1.0)),
     "heldout": dict(seed=5000, speeds=(26.0, 34.0), loss_spans=(1, 2), losses=(0.2, 0.35),
                     bearing_ends=((1, 0), (2, 1)), factors=(0.02, 0.1), ambient=(0.02, 0.05, 0.1),
                     sensors=("G1A", "M8A", "G2Q", "M1G"), scales=(1.35, 0.6), lags=(0.004, 0.008),
                     bends=(6.0, 9.0), attachments=((38.0, 1), (55.0, 0)), headrooms=(1.25, 1.5, 1.8),
-                    bend2=12.0, lag2=0.006, bearing2=((0, 0), 0.3), attachment2=(70.0, 0, 0.65)),
+                    bend2=12.0, lag2=0.006, bearing2=((0, 0), 0.3), attachment2=(70.0, 0, 0.65),
+                    cubics=(0.4, 0.8)),
     "blind": dict(seed=9000, speeds=(24.0, 32.0), loss_spans=(0, 1), losses=(0.25, 0.4),
                   bearing_ends=((0, 0), (1, 1)), factors=(0.05, 0.15), ambient=(0.03, 0.06, 0.12),
                   sensors=("G3A", "M1A", "G1Q", "M8G"), scales=(1.3, 0.7), lags=(0.005, 0.01),
                   bends=(7.0, 10.0), attachments=((45.0, 2), (60.0, 1)), headrooms=(1.1, 1.3, 1.6),
-                  bend2=13.0, lag2=0.007, bearing2=((2, 1), 0.3), attachment2=(85.0, 0, 0.3)),
+                  bend2=13.0, lag2=0.007, bearing2=((2, 1), 0.3), attachment2=(85.0, 0, 0.3),
+                  cubics=(0.6, 1.2)),
 }
 
 
@@ -500,6 +648,11 @@ def case_specs(split: str = "tune") -> list[dict]:
     fa, i, xr = P["attachment2"]
     add("girder_attachment", {"span_index": i, "x_rel_m": xr * L_SPAN, "freq_hz": fa, "mass_ratio": 0.03,
                               "magnitude": fa})
+    # third batch: out-of-catalogue cubic stiffening of the secondary air springs (cubic force =
+    # cubic_ratio x the linear spring force at the linear truth's largest deflection); appended so
+    # earlier cases keep their seeds
+    for cr in P["cubics"]:
+        add("suspension_cubic", {"cubic_ratio": cr, "magnitude": cr})
     return specs
 
 

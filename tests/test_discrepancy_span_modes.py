@@ -129,3 +129,39 @@ def test_a_rigid_point_mass_lowers_the_first_mode_as_rayleigh_says():
     assert f_rigid == pytest.approx(float(np.min(stiff.freq_hz[stiff.span_index == 0])), rel=1e-3)
     # the other spans are untouched
     assert np.allclose(rigid.freq_hz[rigid.span_index == 1], base.freq_hz[base.span_index == 1])
+
+
+def test_a_detuned_span_is_the_first_finding_and_is_modelled_as_an_added_mass():
+    """mode_shift findings come before band findings; a lowered mode is fitted as a rigid mass sized
+    by the measured mode (twin mode x exp(shift)), a raised one as a resonator searched below it."""
+    from types import SimpleNamespace
+    from maglev_ros.discrepancy.discovery import mode_shift_findings, model_discoveries
+    from maglev_ros.discrepancy.span_modes import SpanModeShift
+    spans = [SimpleNamespace(span_id=f"S{i + 1}", start_m=i * L_SPAN, end_m=(i + 1) * L_SPAN) for i in range(3)]
+    low = SpanModeShift("S1", 0, 0.0, L_SPAN, ("G1A", "G1Q"), 23.5, (22.75, 22.78), (-0.032, -0.031),
+                        ((4.5, 8.5), (5.0, 9.0)))
+    high = SpanModeShift("S3", 2, 2 * L_SPAN, 3 * L_SPAN, ("G3A",), 23.5, (24.3, 24.4), (0.035, 0.036),
+                         ((6.0, 8.5), (6.5, 9.0)))
+    found = mode_shift_findings([low, high], None, spans)
+    assert [d["location"]["span"] for d in found] == ["S1", "S3"]
+    assert found[0]["target_hz"] == pytest.approx(23.5 * math.exp(-0.0315))
+    assert found[0]["location"]["position_m"] == [0.0, L_SPAN]
+    band = {"kind": "resonance", "frequency_hz": [37.0, 44.0], "sensed_on": "guideway", "score": 1e4,
+            "location": {"span": "S2", "position_m": [L_SPAN, 2 * L_SPAN]}, "explanation": "x."}
+    calls = []
+
+    class Finder:
+        def fit(self, base, tr, te, band_hz, span_index, search, zeta_max=None, rigid=False, target_hz=None):
+            calls.append(dict(band=tuple(band_hz), span=span_index, search=search, rigid=rigid, target=target_hz,
+                              zeta_max=zeta_max))
+            return SimpleNamespace(accepted=False, verdict=None, to_dict=lambda: {"accepted": False},
+                                   explanation=lambda b, what=None: f"not supported ({what}).")
+    base = SimpleNamespace(spec=SimpleNamespace(spans=tuple(spans)))
+    model_discoveries([band] + found, base, [], [], None, max_resonators=3, finder=Finder(), worst_span_fallback=False)
+    # the detuned spans first (the stronger shift first), then the band finding despite its score
+    assert [c["span"] for c in calls] == [2, 0, 1]
+    c_low, c_high = calls[1], calls[0]
+    assert c_low["rigid"] and c_low["target"] == pytest.approx(found[0]["target_hz"])
+    assert c_low["band"][0] == pytest.approx(0.85 * 22.75, rel=1e-3) and c_low["band"][1] == pytest.approx(1.15 * 23.5)
+    assert not c_high["rigid"] and c_high["target"] is None and c_high["search"][1] == pytest.approx(0.85 * 23.5)
+    assert "-3.1 % relative to the other spans" in found[0]["explanation"]

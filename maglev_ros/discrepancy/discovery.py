@@ -287,7 +287,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                 search = None if rigid else (RESONATOR_MIN_HZ, f0 * 0.85)
                 zeta_max = MAX_ATTACHMENT_DAMPING
             rf = finder.fit(base, rd_train, rd_test, band_fit, idx[d["location"]["span"]], search,
-                            zeta_max=zeta_max, rigid=rigid, target_hz=d.get("target_hz"))
+                            zeta_max=zeta_max, rigid=rigid, target_hz=d.get("target_hz") if rigid else None)
             if rf.accepted and rigid:
                 # which own frequencies would fit as well? (a component tuned above the mode: mass-like)
                 f_top = _usable_top_hz(rd_train, d["channels"])

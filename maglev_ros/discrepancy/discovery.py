@@ -263,9 +263,10 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
     cands.sort(key=lambda d: (-d.get("rank", 0), -d["score"]))
     seen = set()
     fits = []
+    only_span = None
     for d in cands:
         key = (d["location"]["span"], tuple(d["frequency_hz"]))
-        if key in seen or len(fits) >= max_resonators:
+        if key in seen or len(fits) >= max_resonators or only_span not in (None, d["location"]["span"]):
             continue
         seen.add(key)
         try:
@@ -303,7 +304,12 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             continue
         fits.append((rf, d))
         if rf.accepted:
-            break               # one modelled explanation per diagnosis (the strongest finding first)
+            if d["kind"] != "mode_shift" or only_span is not None:
+                break           # one modelled explanation per diagnosis (the strongest finding first)
+            # an added mass explains the detuned mode; a resonator fitted to a band finding of the same
+            # span may explain more (where its own frequency shows): tried, the better held-out fit wins
+            # (tune 26: the 38 Hz attachment as an added mass 1.2 m off, as a resonator 0.1 m off)
+            only_span = d["location"]["span"]
     if worst_span_fallback and not any(rf.accepted for rf, _ in fits):
         # a local change can stay under the localization gates in every cell (a 10-30 % amplitude
         # change of one span's response); the span whose guideway sensors fit worst after
@@ -345,7 +351,8 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             d["explanation"] = rf.explanation(d["residual_band_hz"], _what(d))
             d["location"] = {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id}
         else:
-            d["explanation"] = d["explanation"] + " " + rf.explanation(d["frequency_hz"], _what(d))
+            d["explanation"] = (d["explanation"] + " " + rf.explanation(d["frequency_hz"], _what(d))
+                                + (f" It {d['model']['reasons'][0]}." if rf.accepted else ""))
     def unplaced(d):
         return d.get("sensed_on") == "vehicle" or not d["location"].get("span")
     if any(unplaced(d) for d in disc):

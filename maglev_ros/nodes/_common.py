@@ -76,12 +76,18 @@ def run_node(node_factory, args=None) -> int:
         print(f"{os.path.basename(sys.argv[0])}: error: {exc}", file=sys.stderr)
         code = 1
     finally:
+        abandon = node is not None and hasattr(node, "unfinished_work") and node.unfinished_work()
         if executor is not None:
             executor.shutdown()
         if node is not None:
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
+        if abandon:
+            # a worker thread still in native code: end here, without the interpreter's teardown
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
     return code
 
 

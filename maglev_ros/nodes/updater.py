@@ -141,6 +141,25 @@ class UpdaterNode(Node):
         self.worker.start()
 
 
+    # the launcher waits 5 s after SIGINT before it kills a node
+    SHUTDOWN_WAIT_S = 3.0
+
+    def unfinished_work(self) -> bool:
+        """At shutdown: wait up to ``SHUTDOWN_WAIT_S`` for a running magnet layer; True if it is still
+        running (its result is then discarded: the process must end without the interpreter's
+        teardown, which aborted in the worker's native code, 'terminate called without an active
+        exception', when the demo's graph stopped while the layer ran)."""
+        w = self.worker
+        if w is None or not w.is_alive():
+            return False
+        w.join(self.SHUTDOWN_WAIT_S)
+        if w.is_alive():
+            self.get_logger().warning("shutdown while the magnet layer is running: its result is discarded "
+                                      "(the parameter history holds every accepted update)")
+            return True
+        return False
+
+
 def main(args=None) -> int:
     return run_node(UpdaterNode, args)
 

@@ -119,3 +119,48 @@ def test_updater_node_publishes_stores_and_republishes_after_restart(tmp_path):
         _stop(coll2, node2)
     got2 = json.loads(out2.read_text())["/maglev/twin/parameters"]
     assert got2 and got2[-1]["revision"] == 1 and got2[-1]["values"] == m["values"]
+
+
+SHUTDOWN_SCRIPT = r'''
+import sys, threading, time
+import numpy as np
+from rclpy.node import Node
+from maglev_ros.nodes._common import run_node
+from maglev_ros.nodes.updater import UpdaterNode
+
+class Busy(Node):
+    """A node whose worker thread is still in native code (matrix products) when the node ends."""
+    SHUTDOWN_WAIT_S = 0.5
+    unfinished_work = UpdaterNode.unfinished_work
+
+    def __init__(self):
+        super().__init__("busy_updater")
+        a = np.random.default_rng(0).standard_normal((400, 400))
+        def work():
+            while True:
+                a @ a
+        self.worker = threading.Thread(target=work, daemon=True)
+        self.worker.start()
+        self.exit_code = 7
+        self.t0 = time.monotonic()
+        self.create_timer(0.2, self._tick)
+        self.finished = False
+
+    def _tick(self):
+        self.finished = time.monotonic() - self.t0 > 1.0
+
+sys.exit(run_node(Busy, []))
+'''
+
+
+def test_a_node_ending_while_its_worker_runs_exits_promptly_with_its_code(tmp_path):
+    """The updater's shutdown path: a worker still running after the wait is abandoned with a warning,
+    and the process ends with the node's exit code (no interpreter teardown under the worker)."""
+    script = tmp_path / "busy.py"
+    script.write_text(SHUTDOWN_SCRIPT)
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, str(script)], env=_env(), capture_output=True, text=True, timeout=60)
+    assert p.returncode == 7, p.stdout + p.stderr
+    assert "its result is discarded" in p.stdout + p.stderr
+    assert "Fatal Python error" not in p.stdout + p.stderr
+    assert time.monotonic() - t0 < 30

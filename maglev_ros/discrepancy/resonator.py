@@ -34,6 +34,10 @@ plus one gate of its own, since a 4-parameter resonator can absorb small twin er
 it must explain the located finding, i.e. the held-out guideway misfit inside the discovered band
 drops by at least ``min_band_gain`` (15 %: clearly, though the noise floor's share of that misfit
 stays).
+A rigid added mass (``freq_hz`` infinite) is the limit the discovery uses for a span whose first mode
+rings low (:mod:`.span_modes`): the span's own eigenproblem with M + m t t^T, its mass following from
+the measured mode at every trial position (``target_hz``), and the own frequencies that would fit as
+well profiled afterwards (:func:`frequency_profile`).
 Hand-written: the augmented eigenproblem is ten lines of scipy.linalg.eigh; no library attaches a
 resonator to our FE/modal twin.
 """
@@ -200,6 +204,7 @@ class ResonatorFit:
                     f"cover plate, noise-barrier panel, bracket, loose fixing). This is not a catalogue effect.")
         return (core + f"was the best added resonator for {what or f'the {f0:.0f}-{f1:.0f} Hz residual'} but is NOT supported: "
                 + "; ".join(ev.reasons) + ".")
+
 
 class _Objective:
     """Training misfit of the calibrated twin with a resonator on one span, the calibrated

@@ -454,25 +454,24 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         x_hi = n_spans * L_SPAN - offs_all.min() + max(speeds) * lead + 20.0
         xi, ri, irr_info = guideway_profile(rng, split, x_lo, x_hi)
         irr = (xi, ri)
-    if effect == "magnet_nonlinearity":
-        # current headroom = factor x the largest current excursion of the unsaturated truth on the
-        # fastest pass (so levitation survives every pass while saturation bites at the peaks)
+    plain = None          # the fastest pass without the effect (PassResult, its vehicle model)
+    if effect in ("magnet_nonlinearity", "suspension_cubic", "girder_attachment"):
         v = max(speeds)
         lead = _lead_s(v, n_spans, offs_all, variant)
         x0 = -offs_all.max() - v * lead
         st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, None, tp, variant, irr)
-        res = st.advance((n_spans * L_SPAN - offs_all.min() + v * lead - x0) / v, v)
-        tp["peak_demand_a"] = float(np.abs(res.magnet_current_a - st.vehicle.levitation.static_current_a).max())
+        plain = (st.advance((n_spans * L_SPAN - offs_all.min() + v * lead - x0) / v, v), st.vehicle)
+    if effect == "magnet_nonlinearity":
+        # current headroom = factor x the largest current excursion of the unsaturated truth on the
+        # fastest pass (so levitation survives every pass while saturation bites at the peaks)
+        res, veh = plain
+        tp["peak_demand_a"] = float(np.abs(res.magnet_current_a - veh.levitation.static_current_a).max())
         tp["current_limit_a"] = tp["headroom"] * tp["peak_demand_a"]
     if effect == "suspension_cubic":
         # k3 from the LINEAR truth's largest air-spring deflection on the fastest pass: the cubic
         # force is cubic_ratio x the linear spring force k d_max at that deflection
-        v = max(speeds)
-        lead = _lead_s(v, n_spans, offs_all, variant)
-        x0 = -offs_all.max() - v * lead
-        st = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, None, tp, variant, irr)
-        res = st.advance((n_spans * L_SPAN - offs_all.min() + v * lead - x0) / v, v)
-        sec, rows = secondary_springs(st.vehicle.model)
+        res, veh = plain
+        sec, rows = secondary_springs(veh.model)
         k_sec = float(np.mean([c.stiffness_n_per_m for c in sec]))
         tp["k_secondary_n_per_m"] = k_sec
         tp["d_max"] = float(np.abs(res.vehicle_disp_m @ rows.T).max())         # [m]
@@ -502,8 +501,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         sig_hi = truth_signals(res, md["sensors"], st.vehicle.model)
         if effect == "girder_attachment" and v == max(speeds):
             # where the attachment shows: the same pass without it (noise-free truth signals)
-            st0 = _truth_stepper(cfg_true, tuple(spans), gsens, v, x0, None, tp, variant, irr)
-            sig0 = truth_signals(st0.advance(dur, v), md["sensors"], st0.vehicle.model)
+            sig0 = truth_signals(plain[0], md["sensors"], plain[1].model)
             tp["signature_bands_hz"] = signature_bands(sig_hi, sig0, md["sensors"], f"S{tp['span_index'] + 1}",
                                                        1.0 / float(np.median(np.diff(t_hi))),
                                                        NOISE_STD["guideway_accel"] * noise_scale)

@@ -142,7 +142,7 @@ def test_a_detuned_span_is_the_first_finding_and_is_modelled_as_an_added_mass():
                         ((4.5, 8.5), (5.0, 9.0)))
     high = SpanModeShift("S3", 2, 2 * L_SPAN, 3 * L_SPAN, ("G3A",), 23.5, (24.3, 24.4), (0.035, 0.036),
                          ((6.0, 8.5), (6.5, 9.0)))
-    found = mode_shift_findings([low, high], None, spans)
+    found = mode_shift_findings([low, high], spans)
     assert [d["location"]["span"] for d in found] == ["S1", "S3"]
     assert found[0]["target_hz"] == pytest.approx(23.5 * math.exp(-0.0315))
     assert found[0]["location"]["position_m"] == [0.0, L_SPAN]

@@ -467,7 +467,7 @@ class Diagnoser:
         if not chosen:
             disc = discover(maps_after, guideway_modal(final_spec), base_spec_spans(final_spec))
             disc += persistent_findings(persistent, guideway_modal(final_spec), base_spec_spans(final_spec), disc)
-            disc += mode_shift_findings(detuned, guideway_modal(final_spec), base_spec_spans(final_spec))
+            disc += mode_shift_findings(detuned, base_spec_spans(final_spec))
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
                 # the catalogue's gates; reported in ``discovery`` only, never as missing_physics

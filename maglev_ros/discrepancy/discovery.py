@@ -187,7 +187,7 @@ def persistent_findings(persistent, modal, spans, disc: list[dict]) -> list[dict
     return out
 
 
-def mode_shift_findings(detuned, modal, spans) -> list[dict]:
+def mode_shift_findings(detuned, spans) -> list[dict]:
     """Findings from spans whose first mode rings off the other spans' in the free decay after every
     pass (:func:`.span_modes.detuned_spans`): the most specific evidence of a local change of one
     girder (its mass, stiffness or supports), ranked before every band finding."""
@@ -292,8 +292,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             if rf.accepted and rigid:
                 # which own frequencies would fit as well? (a component tuned above the mode: mass-like)
                 f_top = _usable_top_hz(rd_train, d["channels"])
-                prof = frequency_profile(base, rd_train, rf, np.geomspace(f1 * 1.2, f_top, 7),
-                                         target_hz=d.get("target_hz"))
+                prof = frequency_profile(base, rd_train, rf, np.geomspace(f1 * 1.2, f_top, 7), d["target_hz"])
                 lo, hi = supported_band(prof + [(f_top, rf.train_gain)], rf.train_gain)
                 if np.isfinite(lo):
                     rf = replace(rf, supported_hz=(lo, hi))

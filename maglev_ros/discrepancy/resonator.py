@@ -279,48 +279,36 @@ class _Objective:
         return float(rp @ rp) + pen
 
 
-def frequency_profile(base, rd_train, fit: "ResonatorFit", freqs_hz, zeta_max: float = MAX_ATTACHMENT_DAMPING,
-                      maxfev: int = 16, target_hz: float | None = None) -> list[tuple[float, float]]:
-    """(f, training misfit reduction as a share of the calibrated twin's misfit) with the resonator's
-    frequency held at each f and position, mass and damping re-fitted (Nelder-Mead from the fitted
-    resonator and from a mid-span start): how well the data determine the frequency. An attachment
-    tuned well above the mode it detunes acts on it as a mass, whatever its own frequency: the
-    profile is then flat (measured: a 55 Hz, 3 % mass attachment fitted 0.56-0.59 of the misfit at
-    any frequency from 35 to 110 Hz, tune case 27)."""
+def frequency_profile(base, rd_train, fit: "ResonatorFit", freqs_hz, target_hz: float) -> list[tuple[float, float]]:
+    """(f, training misfit reduction as a share of the calibrated twin's misfit) of an attachment tuned
+    at each f on the fitted span, its mass following from the measured mode ``target_hz`` and its
+    position re-fitted: how well the data determine its own frequency. One tuned well above the mode
+    it detunes acts on it as a mass, whatever its frequency: the profile is then flat (measured with
+    mass and damping free too: a 55 Hz, 3 % mass attachment fitted 0.51-0.585 of the misfit at any
+    frequency from 29 to 110 Hz, tune case 27)."""
     rss0 = float(base.r0 @ base.r0)
-    r = fit.resonator
     out = []
     for f in freqs_hz:
-        ob = _Objective(base, rd_train, r.span_index, (f, f), zeta_max, target_hz=target_hz)
-        lf = math.log(f)
-        if target_hz is not None:
-            # the mass follows from the measured mode: the position is the only shape parameter left
-            c = _best_position(ob, lf, math.log(0.02))[1]
-            out.append((float(f), (rss0 - c) / rss0 if rss0 > 0 else 0.0))
-            continue
-        starts = [(r.x_rel_m / ob.L, math.log(r.mass_ratio), math.log(min(r.damping_ratio, zeta_max))),
-                  (0.4, math.log(r.mass_ratio), math.log(min(0.02, zeta_max)))]
-        best = min(((ob.cost((lf, *q)), q) for q in starts), key=lambda t: t[0])
-        q0 = np.array(best[1])
-        opt = minimize(lambda q: ob.cost((lf, *q)), q0, method="Nelder-Mead",
-                       options={"maxfev": maxfev, "initial_simplex": np.vstack([q0, q0 + np.diag([0.08, 0.5, 0.5])])})
-        c = min(best[0], float(opt.fun))
+        ob = _Objective(base, rd_train, fit.resonator.span_index, (f, f), MAX_ATTACHMENT_DAMPING, target_hz=target_hz)
+        c = _best_position(ob, math.log(f), math.log(0.02))[1]
         out.append((float(f), (rss0 - c) / rss0 if rss0 > 0 else 0.0))
     return out
 
 
 def _best_position(ob: "_Objective", lf: float, lz: float, grid=(0.1, 0.2, 0.3, 0.4, 0.5),
-                   maxiter: int = 6) -> tuple[float, float]:
-    """(x / L, cost) minimising the objective over the position on the first half of the span (the
-    other parameters fixed or, with a target mode, following from it): grid, then a bounded refine."""
+                   maxiter: int = 6) -> tuple[float, float, list]:
+    """(x / L, cost, every (x / L, cost) tried) minimising the objective over the position on the
+    first half of the span (the other parameters fixed or, with a target mode, following from it):
+    grid, then a bounded refine."""
     from scipy.optimize import minimize_scalar
     costs = [ob.cost((lf, xf, 0.0, lz)) for xf in grid]
     k = int(np.argmin(costs))
     lo, hi = max(0.02, grid[k] - 0.1), min(0.5, grid[k] + 0.1)
     opt = minimize_scalar(lambda xf: ob.cost((lf, xf, 0.0, lz)), bounds=(lo, hi), method="bounded",
                           options={"maxiter": maxiter, "xatol": 0.01})
-    ob.grid_costs = list(zip(grid, costs)) + [(float(opt.x), float(opt.fun))]
-    return (float(opt.x), float(opt.fun)) if opt.fun < costs[k] else (float(grid[k]), float(costs[k]))
+    tried = list(zip(grid, costs)) + [(float(opt.x), float(opt.fun))]
+    best = (float(opt.x), float(opt.fun)) if opt.fun < costs[k] else (float(grid[k]), float(costs[k]))
+    return (*best, tried)
 
 
 def supported_band(profile: list[tuple[float, float]], best_gain: float, share: float = 0.9) -> tuple[float, float]:
@@ -378,14 +366,14 @@ class ResonatorFinder:
         make, cost, project = ob.make, ob.cost, ob.project
         n_sims = ob.n_sims
         if ob.target_hz is not None:
-            xf, c_best = _best_position(ob, 0.0, math.log(self.zeta0))
+            xf, c_best, tried = _best_position(ob, 0.0, math.log(self.zeta0))
             res = make((0.0, xf, 0.0, math.log(self.zeta0)))
             if res is None:
                 raise ValueError(f"no added mass within {MU_BOUNDS} gives the measured {target_hz:.2f} Hz mode")
             # the positions that fit at least 90 % as well (with the mass from the mode, the first mode alone
             # cannot tell them: only the other modes and the forced response do)
             rss0 = float(base.r0 @ base.r0)
-            x_ok = tuple(sorted(x * L for x, c in ob.grid_costs if rss0 - c >= 0.9 * (rss0 - c_best)))
+            x_ok = tuple(sorted(x * L for x, c in tried if rss0 - c >= 0.9 * (rss0 - c_best)))
         else:
             x_ok = None
             # coarse grid: frequency x position

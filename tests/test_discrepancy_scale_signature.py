@@ -63,9 +63,10 @@ def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
     from maglev_ros.discrepancy.acceptance import Verdict
     from maglev_ros.discrepancy.diagnose import _peer_check
 
+    from maglev_ros.discrepancy.catalogue import sensor_hypothesis
+
     def fit(ch):
-        hyp = NS(effect="sensor_error", label=f"sensor_error@{ch}", location={"channels": [ch]})
-        return NS(hyp=hyp)
+        return NS(hyp=sensor_hypothesis(ch, "m/s^2", 0.01, 12.0), params=np.array([-0.29, 0.0, 0.0]))
     rec = NS(channels={"G3Q": NS(group="guideway_accel"), "G3A": NS(group="guideway_accel")})
     ok = Verdict(True, (), 0.2, 0.15, -278.0)
     fits = [(fit("G3Q"), ok, -278.0), (fit("G3A"), Verdict(False, ("x",), 0.2, 0.19, -204.0), -204.0)]
@@ -73,6 +74,36 @@ def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
     assert not _peer_check(fits, rec, set())[0][1].accepted
     assert _peer_check(fits, rec, {"G3Q"})[0][1].accepted
     assert not _peer_check(fits, rec, {"G3Q", "G3A"})[0][1].accepted       # both off: common mismatch
+
+
+def test_peer_check_a_scale_the_other_gap_sensor_shares_is_the_twins_level():
+    """Two sensors of one quantity without peers enough for the signature (the two gap sensors): a
+    scale-only fit of one is rejected when the other fits a scale of the same sign and at least half
+    its size with BIC support; a scale the other does not share, a drift, or an opposite scale stays."""
+    from types import SimpleNamespace as NS
+
+    from maglev_ros.discrepancy.acceptance import Verdict
+    from maglev_ros.discrepancy.catalogue import sensor_hypothesis
+    from maglev_ros.discrepancy.diagnose import _peer_check
+
+    noise, span_s = 2e-5, 12.0
+
+    def fit(ch, ln_s, offset=0.0, drift=0.0):
+        return NS(hyp=sensor_hypothesis(ch, "m", noise, span_s), params=np.array([ln_s, offset, drift]))
+    rec = NS(channels={"M1G": NS(group="gap"), "M8G": NS(group="gap")})
+    ok = Verdict(True, (), 0.120, 0.114, -200.0)
+    no = Verdict(False, ("x",), 0.120, 0.117, -95.0)
+
+    def judged(m8, m1, d1=-95.0):
+        return _peer_check([(m8, ok, -200.0), (m1, no, d1)], rec)[0][1]
+    # both read ~1.25x the twin (ln 0.25 / 0.22): the twin's gap level, not M8G (heldout case 34)
+    v = judged(fit("M8G", 0.25), fit("M1G", 0.22))
+    assert not v.accepted and "M1G" in v.reasons[-1] and "common" in v.reasons[-1]
+    assert judged(fit("M8G", 0.25), fit("M1G", 0.02), d1=-4.0).accepted         # only M8G is off
+    assert judged(fit("M8G", 0.25), fit("M1G", -0.22)).accepted                  # the other way round
+    assert judged(fit("M8G", 0.25), fit("M1G", 0.22), d1=-5.0).accepted         # the peer's scale unsupported
+    # a drift well above the noise over the record is not a scale the peer could share
+    assert judged(fit("M8G", 0.25, drift=2e-5), fit("M1G", 0.22)).accepted
 
 
 @pytest.mark.parametrize("seed", range(4))

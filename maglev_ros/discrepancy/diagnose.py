@@ -366,7 +366,8 @@ class Diagnoser:
         signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
         fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
         fits = [_scale_needs_its_signature(hf, v, d, sig_of) for hf, v, d in fits]
-        fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds})
+        fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds},
+                           cfg.acceptance.max_delta_bic)
         # a scale fault whose signature holds but which the twin's own level hides (the whole group off)
         peer_ref = _peer_referenced(fits, sig_of, recs, same_heldout, cfg.acceptance, base.spec, held_before)
         fits = [peer_ref[id(hf)][0] if id(hf) in peer_ref else (hf, v, d) for hf, v, d in fits]
@@ -819,7 +820,7 @@ def _peer_referenced(fits: list, sig_of: dict, recs: list, same_heldout: bool, a
     return out
 
 
-def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()) -> list:
+def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset(), acc_bic: float = -10.0) -> list:
     """The sensor_error signature is ONE channel off while the others agree with the twin: a
     scale/offset/drift fit that a channel of the same group (same quantity, e.g. the other
     magnet's gap) matches by at least half its training delta BIC points to a mismatch common to
@@ -828,21 +829,39 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
     channel shows the scale-fault signature against its peers and that peer does not
     (``scale_faulty``: the channels whose signature holds, :mod:`.scale_signature`): then the peer's gain is the group's model
     error, not a common mismatch (a 0.75 scale on G3Q was rejected because G3A, same span, improved
-    too, while only G3Q was off its peers in every band: -0.19/-0.26 in ln, all bands)."""
+    too, while only G3Q was off its peers in every band: -0.19/-0.26 in ln, all bands).
+    A scale-only fit is also rejected when a peer fits a scale of the same sign and at least half
+    its size with BIC support of its own (``acc_bic``): the twin's level of that quantity is off."""
     group = {n: c.group for n, c in rec.channels.items()}
-    sens = {hf.hyp.location["channels"][0]: d for hf, v, d in fits
+    sens = {hf.hyp.location["channels"][0]: (d, float(hf.params[0])) for hf, v, d in fits
             if hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout")}
     out = []
     for hf, v, d in fits:
         if v.accepted and hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout"):
             n = hf.hyp.location["channels"][0]
-            peers = [(p, dp) for p, dp in sens.items() if p != n and group.get(p) == group.get(n)]
-            if peers:
-                p, dp = min(peers, key=lambda t: t[1])
-                if d < 0 and dp <= 0.5 * d and not (n in scale_faulty and p not in scale_faulty):
-                    v = Verdict(False, v.reasons + (f"{p} (same quantity) improves almost as much (delta BIC {dp:+.0f} "
-                                                    f"vs {d:+.0f}): a mismatch common to those channels, not one "
-                                                    f"faulty sensor",), v.heldout_before, v.heldout_after, v.delta_bic)
+            peers = [(p, dp, lp) for p, (dp, lp) in sens.items() if p != n and group.get(p) == group.get(n)]
+            why = None
+            if peers and d < 0:
+                p, dp, _ = min(peers, key=lambda t: t[1])
+                if dp <= 0.5 * d and not (n in scale_faulty and p not in scale_faulty):
+                    why = (f"{p} (same quantity) improves almost as much (delta BIC {dp:+.0f} vs {d:+.0f}): a mismatch "
+                           "common to those channels, not one faulty sensor")
+            ln_s = float(hf.params[0])
+            # a scale-only fit (offset and drift within the noise) that a peer of the same quantity shares
+            # by at least half its log scale, with BIC support of its own: the two gap sensors of a clean
+            # case both read ~1.25-1.29x the twin (ln 0.22 / 0.25; delta BIC -95 / -200, so the rule
+            # above missed it by 5 points) and M8G was called faulty (heldout 34, session 14)
+            if why is None and not hf.hyp.plausible(np.array([0.0, *map(float, hf.params[1:])]))[0]:
+                for p, dp, lp in peers:
+                    if n in scale_faulty and p not in scale_faulty:
+                        continue
+                    if dp <= acc_bic and np.sign(lp) == np.sign(ln_s) and abs(lp) >= 0.5 * abs(ln_s):
+                        why = (f"{p} (same quantity) reads x{math.exp(lp):.2f} against the twin too (delta BIC "
+                               f"{dp:+.0f}): a scale common to those channels (the twin's level), not one faulty "
+                               "sensor")
+                        break
+            if why:
+                v = Verdict(False, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic)
         out.append((hf, v, d))
     return out
 

@@ -37,6 +37,7 @@ from maglev_ros.errors import UserError
 from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
 from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
+from .air_springs import AirSpringTermFinder
 from .discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
 from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
                        residual_rows, residual_vector, split_frames)
@@ -473,6 +474,13 @@ class Diagnoser:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
                 # the catalogue's gates; reported in ``discovery`` only, never as missing_physics
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, log=notes.append)
+            # the air springs, from the car-body accelerometers (their low-band misfit is the rail's
+            # long-wave error on every case, so no mismatch points there: always tried when they exist)
+            air = _air_spring_finding(base.spec, rd_train, rd_test, cfg.acceptance, notes.append)
+            if air is not None and air["model"]["accepted"]:
+                disc.insert(0, air)
+            elif air is not None:
+                rejected.append({"effect": "air_spring_term", "why": f"discovery (air springs): {air['explanation']}"})
         elif all(hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout")
                  and all(groups_of.get(c, "").startswith("guideway") for c in hf.hyp.location.get("channels") or [])
                  for hf, _, _ in chosen):
@@ -683,6 +691,25 @@ def _resonator_rejections(disc: list[dict], why_if_accepted: str) -> list[dict]:
         out.append({"effect": "added_resonator",
                     "why": f"discovery (resonator on span {d['location'].get('span')}): {why}"})
     return out
+
+
+def _air_spring_finding(spec: ModelSpec, rd_train, rd_test, acceptance, log) -> dict | None:
+    """A discovery entry for a nonlinear air-spring force (:mod:`.air_springs`), or None without
+    car-body accelerometers."""
+    try:
+        fit = AirSpringTermFinder(acceptance).fit(spec, rd_train, rd_test)
+    except Exception as exc:          # an unstable twin etc.: nothing to say about the air springs
+        log(f"discovery: air-spring regression failed: {exc}")
+        return None
+    if fit is None:
+        return None
+    rd = rd_train[0]
+    return {"kind": "suspension_term", "frequency_hz": list(fit.band_hz) if fit.band_hz else None,
+            "channels": list(fit.channels), "sensed_on": "vehicle",
+            "location": {"position_m": None, "span": None, "place": "secondary suspension (air springs)",
+                         "channels": list(fit.channels)},
+            "time_s": [float(rd.rec.t0_s), float(rd.rec.t1_s)], "twin_modes_in_band_hz": [], "score": 0.0,
+            "explanation": fit.explanation(), "model": fit.to_dict()}
 
 
 def _guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "guideway_disp")) -> dict:

@@ -20,6 +20,10 @@ Then each located finding is MODELLED and judged by the catalogue's acceptance g
   are not needed, and the project avoids a scikit-learn dependency. Linear terms (g, g') are kept
   in the regression as nuisance (they are the calibrated gains kp, kv in disguise) but only
   nonlinear terms are ever reported.
+- on the car body (always, when car-body accelerometers exist and no catalogue entry is chosen): the
+  air springs' missing force from the body accelerometers' residual over the twin's air-spring
+  deflections, :mod:`.air_springs` (called from the diagnosis, not from a residual-map finding: the
+  body's low-band misfit is the reconstructed rail's long-wave error on every case).
 A span whose first mode rings off the other spans' in the free decay after every pass
 (:mod:`.span_modes`) is a finding of its own, ranked first (the most specific evidence of a local
 change of one girder). A LOWERED mode is modelled as a mass added to that span: rigidly attached,
@@ -454,16 +458,18 @@ def _bic_ts(rss: float, n: int, k: int) -> float:
 
 
 def sparse_regression_report(theta_tr, y_tr, theta_te, y_te, n_eff_tr: int, n_eff_te: int,
-                             threshold: float = 0.05, acceptance=None) -> dict:
+                             threshold: float = 0.05, acceptance=None, names=TERM_NAMES,
+                             linear=LINEAR_TERMS) -> dict:
     """Nonlinear terms that explain the residual beyond the linear (calibration) terms.
 
     Model 0: y ~ linear terms; model 1: STLSQ over the whole library (linear terms always kept).
     Accepted when the held-out residual falls by the catalogue's margins, the training BIC drops by
     more than ``-max_delta_bic`` and a nonlinear term survives. ``n_eff_*``: effective sample sizes
-    (correlated samples: about bandwidth x duration)."""
+    (correlated samples: about bandwidth x duration). ``names``: the library's columns, ``linear``
+    those always kept (default: the gap library of :func:`term_library`)."""
     from .acceptance import AcceptanceConfig
     acc = acceptance or AcceptanceConfig()
-    lin = [TERM_NAMES.index(t) for t in LINEAR_TERMS]
+    lin = [names.index(t) for t in linear]
     c0 = np.zeros(theta_tr.shape[1])
     c0[lin] = np.linalg.lstsq(theta_tr[:, lin], y_tr, rcond=None)[0]
     c1 = stlsq(theta_tr, y_tr, threshold, keep=lin)
@@ -494,7 +500,7 @@ def sparse_regression_report(theta_tr, y_tr, theta_te, y_te, n_eff_tr: int, n_ef
                                                                               n_eff_tr, k0)
     nr0 = math.sqrt(rss(theta_te, y_te, c0) / max(float(np.sum(y_te ** 2)), 1e-300))
     nr1 = math.sqrt(rss(theta_te, y_te, c1) / max(float(np.sum(y_te ** 2)), 1e-300))
-    nonlin = {TERM_NAMES[j]: float(c1[j]) for j in range(len(TERM_NAMES)) if j not in lin and c1[j] != 0}
+    nonlin = {names[j]: float(c1[j]) for j in range(len(names)) if j not in lin and c1[j] != 0}
     why = []
     if not nonlin:
         why.append("no nonlinear term survives the sparse regression")
@@ -504,7 +510,7 @@ def sparse_regression_report(theta_tr, y_tr, theta_te, y_te, n_eff_tr: int, n_ef
     if not dbic <= acc.max_delta_bic:
         why.append(f"delta BIC {dbic:+.1f} does not beat the linear terms (needs <= {acc.max_delta_bic:g})")
     return {"kind": "suspension_term", "terms": nonlin,
-            "linear_terms": {TERM_NAMES[j]: float(c1[j]) for j in lin},
+            "linear_terms": {names[j]: float(c1[j]) for j in lin},
             "accepted": not why, "reasons": why,
             "evidence": {"heldout_nrmse_before": nr0, "heldout_nrmse_after": nr1, "delta_bic": float(dbic)}}
 

@@ -91,7 +91,7 @@ def _longest_run(ok: np.ndarray) -> slice:
     return slice(*best)
 
 
-def body_series(spec, rd, band_hz=BAND_HZ) -> list[tuple[str, np.ndarray, np.ndarray, float]]:
+def body_series(spec, rd, band_hz=BAND_HZ) -> list[tuple[str, np.ndarray, np.ndarray, float, np.ndarray]]:
     """Per car-body accelerometer: (name, band-passed residual (n,), band-passed terms (n, n_terms),
     sample rate after decimation, band-passed measurement (n,)), over the longest stretch the
     diagnosis compares; nothing for a pass without a reconstructed irregularity."""

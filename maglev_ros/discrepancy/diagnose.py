@@ -704,7 +704,8 @@ def _air_spring_finding(spec: ModelSpec, rd_train, rd_test, acceptance, log) -> 
     if fit is None:
         return None
     rd = rd_train[0]
-    return {"kind": "suspension_term", "frequency_hz": list(fit.band_hz) if fit.band_hz else None,
+    return {"kind": "suspension_term", "category": "suspension",
+            "frequency_hz": list(fit.band_hz) if fit.band_hz else None,
             "channels": list(fit.channels), "sensed_on": "vehicle",
             "location": {"position_m": None, "span": None, "place": "secondary suspension (air springs)",
                          "channels": list(fit.channels)},

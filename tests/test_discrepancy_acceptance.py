@@ -99,3 +99,34 @@ def test_profile_spread_tells_an_absorbed_parameter_from_a_determined_one():
     assert profile_spread(det, n) == pytest.approx(0.5 * n * np.log(1.25 / 0.25), rel=0.1)
     assert profile_spread(det, n) > 50 * IDENTIFIABLE_LLR
     assert profile_spread(det[:1], n) == float("inf")      # one point: nothing to compare
+
+
+def test_levitation_physics_whose_trade_is_the_gains_is_recalibrated_on_every_channel(monkeypatch):
+    """Rejected by the rest-of-recording gate alone, levitation physics is re-calibrated with kp, kv on
+    every channel: accepted (and that twin reported) when the whole held-out fit is then not worse
+    than the allowance, still rejected otherwise; the gates on its channels are not re-opened."""
+    from types import SimpleNamespace as NS
+
+    import maglev_ros.discrepancy.diagnose as D
+    from maglev_ros.discrepancy.acceptance import REST_WORSE, Verdict
+
+    whole = {"value": 0.1045}
+    calls = []
+    monkeypatch.setattr(D, "residual_vector", lambda sp, rds: np.zeros(5))
+    monkeypatch.setattr(D, "fit_gains", lambda b, rds, rows: calls.append(rows.sum()) or NS(
+        name="all-rows", calibrated_values=lambda: {"kp_a_per_m": 7000.0, "kv_a_s_per_m": 41.5}))
+    monkeypatch.setattr(D, "fit_report", lambda sp, rds: (whole["value"], {}))
+    base = NS(spec="base", theta=np.zeros(4), jac=None, r0=None)
+
+    def case():
+        hyp = NS(apply=lambda sp, p: "physics", effect="magnet_nonlinearity")
+        return NS(hyp=hyp, params=np.array([1.3]), spec="vehicle-rows")
+    v = Verdict(False, (f"{REST_WORSE} (whole held-out NRMSE 0.103 -> 0.111)",), 0.1035, 0.111, -39.0)
+    dg = D.Diagnoser()
+    hf, v2 = dg._recalibrated_whole(base, case(), v, [], [], 0.1035)
+    assert v2.accepted and v2.heldout_after == pytest.approx(0.1045) and hf.spec.name == "all-rows"
+    assert calls == [5] and v2.reasons[0].startswith(D.RECALIBRATED) and "0.111" in v2.reasons[0]
+    whole["value"] = 0.1035 * 1.03          # worse than the 2.5 % allowance with every channel re-fitted too
+    hf, v3 = dg._recalibrated_whole(base, case(), v, [], [], 0.1035)
+    assert not v3.accepted and hf.spec == "vehicle-rows" and v3.reasons[0] == v.reasons[0]
+    assert "re-calibrated on every channel too" in v3.reasons[-1]

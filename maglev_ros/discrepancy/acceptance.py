@@ -81,6 +81,9 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
     return Verdict(not why, tuple(why), float(heldout_before), float(heldout_after), float(delta_bic))
 
 
+REST_WORSE = "it makes the rest of the recording worse"
+
+
 def judge_where_it_acts(whole_before: float, whole_after: float, local_before: float, local_after: float,
                         delta_bic: float, plausible: tuple[bool, str], collinearity: float,
                         cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None,
@@ -101,7 +104,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
         why += (f"on the held-out data {absorbed_by} explain nearly as much: these recordings cannot separate "
                 f"them" + (f" ({separated_by} would)" if separated_by else ""),)
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
-        why += (f"it makes the rest of the recording worse (whole held-out NRMSE {whole_before:.3f} -> "
+        why += (f"{REST_WORSE} (whole held-out NRMSE {whole_before:.3f} -> "
                 f"{whole_after:.3f})",)
     return Verdict(not why, why, float(whole_before), float(whole_after), float(delta_bic))
 

@@ -36,7 +36,7 @@ from maglev_ros.errors import UserError
 
 from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
-from .acceptance import AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
+from .acceptance import REST_WORSE, AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .air_springs import AirSpringTermFinder
 from .discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
 from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
@@ -345,6 +345,8 @@ class Diagnoser:
                                         held_llr(hf.spec, loc, held_of(h, rd_train_h, rd_test_h),
                                                  null.heldout if null is not None else None),
                                         **gains)
+                if null is not None and v.reasons and all(r.startswith(REST_WORSE) for r in v.reasons):
+                    hf, v = self._recalibrated_whole(base, hf, v, rd_train_h, rd_test_h, held_before)
             else:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))
@@ -613,6 +615,39 @@ class Diagnoser:
             hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
         return hyps
 
+    def _recalibrated_whole(self, base: BaseFit, hf: HypFit, v: Verdict, rd_train, rd_test,
+                            held_before: float) -> tuple[HypFit, Verdict]:
+        """Levitation physics that passed every gate on its channels but made the rest of the recording
+        worse, with kp and kv re-fitted on the magnets' channels (the null re-fits them there too): the
+        trade may be that re-fit's, not the physics'. The physics is then re-calibrated with the gains
+        on EVERY channel (E, kb held) and accepted when that twin does not make the whole held-out fit
+        worse (the same 2.5 % allowance); it becomes the reported model. Measured (heldout split,
+        session 15): only true effects were ever rejected by that gate alone (tune 16 and heldout 16,
+        4 ms delays; heldout 28, saturation at 1.25x the demand); heldout 28's gains re-fitted on the
+        magnets' channels alone cost the girder sensors 0.172 -> 0.225 (G3A) with or without the
+        saturation, the saturation with the calibrated gains 0.172 -> 0.168."""
+        h = hf.hyp
+        try:
+            sp = h.apply(base.spec, hf.params)
+            rows = np.ones(residual_vector(sp, rd_train).size, bool)
+            sp_all = fit_gains(BaseFit(sp, base.theta, base.jac, base.r0, 0), rd_train, rows)
+            whole, _ = fit_report(sp_all, rd_test)
+        except Exception as exc:        # an unstable twin: the verdict stands
+            return hf, Verdict(False, v.reasons + (f"re-calibrating the gains on every channel failed ({exc})",),
+                               v.heldout_before, v.heldout_after, v.delta_bic)
+        tol = 1 + 0.5 * self.config.acceptance.min_rel_gain
+        if not whole <= held_before * tol:
+            return hf, Verdict(False, v.reasons + (
+                f"with kp, kv re-calibrated on every channel too (whole held-out NRMSE {held_before:.3f} -> "
+                f"{whole:.3f})",), v.heldout_before, v.heldout_after, v.delta_bic)
+        cal = sp_all.calibrated_values()
+        why = (f"{RECALIBRATED} (kp {cal['kp_a_per_m']:.0f} "
+               f"A/m, kv {cal['kv_a_s_per_m']:.1f} A s/m): whole held-out NRMSE {held_before:.3f} -> {whole:.3f}; "
+               f"with kp, kv re-fitted on its channels only it was {v.heldout_after:.3f}, a trade of the girder "
+               f"sensors' fit for the magnets' that the gains make without the physics too")
+        hf.spec = sp_all           # in place: the fit is known by its id (own rail, local evidence)
+        return hf, Verdict(True, (why,), v.heldout_before, float(whole), v.delta_bic)
+
     def _dropout_fit(self, base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff):
         spec = base.spec.with_(dropouts=tuple(drops))
         r = residual_vector(spec, rd_train)
@@ -658,6 +693,8 @@ class Diagnoser:
                      f"calibrated twin with kp and kv re-fitted there, on data not used for fitting ({held}): "
                      f"NRMSE {local[0]:.3f} -> {local[1]:.3f} (whole recording, held-out passes, against the "
                      f"calibrated twin: {v.heldout_before:.3f} -> {v.heldout_after:.3f}).")
+            if v.reasons and v.reasons[0].startswith(RECALIBRATED):
+                text += f" It is {v.reasons[0]}."
         loc = h.location
         return {"effect": h.effect, "category": h.category, "explanation": text,
                 "location": {"position_m": loc.get("position_m"), "span": loc.get("span"),
@@ -725,6 +762,7 @@ def _guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "
     return out
 
 
+RECALIBRATED = "accepted with the levitation gains re-calibrated on the whole recording"
 SIBLING_LOG_SCALE = 0.10   # |ln| off the peers in every pass; healthy channels: min over passes <= 0.073
 
 

@@ -104,6 +104,15 @@ def test_peer_check_a_scale_the_other_gap_sensor_shares_is_the_twins_level():
     assert judged(fit("M8G", 0.25), fit("M1G", 0.22), d1=-5.0).accepted         # the peer's scale unsupported
     # a drift well above the noise over the record is not a scale the peer could share
     assert judged(fit("M8G", 0.25, drift=2e-5), fit("M1G", 0.22)).accepted
+    # with held-out data: the fit is judged by what its offset and drift alone achieve (a true drift
+    # of M1G fitted with a x1.14 scale beside it, the drift within the 3-sigma test: heldout case 14)
+    rec2 = NS(channels={"M1G": NS(group="gap"), "M8G": NS(group="gap")})
+
+    def judged2(carried):
+        f1, f8 = fit("M1G", 0.13, drift=1e-6), fit("M8G", 0.12)
+        return _peer_check([(f1, ok, -3000.0), (f8, no, -20.0)], rec2, scale_carries=lambda hf: carried)[0][1]
+    assert judged2(carried=False).accepted
+    assert not judged2(carried=True).accepted
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -926,17 +926,14 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
             # M8G was called faulty (heldout 34, session 14). Carried by its scale, not by a drift: a true
             # 2e-5 m/s drift of M1G was fitted with x1.14 beside it, drift "within the noise" by the
             # hypothesis' 3-sigma test over the record, yet it alone made the held-out gain (heldout 14)
-            carried = (scale_carries(hf) if scale_carries is not None
-                       else not hf.hyp.plausible(np.array([0.0, *map(float, hf.params[1:])]))[0])
-            if why is None and carried:
-                for p, dp, lp in peers:
-                    if n in scale_faulty and p not in scale_faulty:
-                        continue
-                    if dp <= acc_bic and np.sign(lp) == np.sign(ln_s) and abs(lp) >= 0.5 * abs(ln_s):
-                        why = (f"{p} (same quantity) reads x{math.exp(lp):.2f} against the twin too (delta BIC "
-                               f"{dp:+.0f}): a scale common to those channels (the twin's level), not one faulty "
-                               "sensor")
-                        break
+            shared = [(p, dp, lp) for p, dp, lp in peers if not (n in scale_faulty and p not in scale_faulty)
+                      and dp <= acc_bic and np.sign(lp) == np.sign(ln_s) and abs(lp) >= 0.5 * abs(ln_s)]
+            if why is None and shared and (
+                    scale_carries(hf) if scale_carries is not None
+                    else not hf.hyp.plausible(np.array([0.0, *map(float, hf.params[1:])]))[0]):
+                p, dp, lp = shared[0]
+                why = (f"{p} (same quantity) reads x{math.exp(lp):.2f} against the twin too (delta BIC {dp:+.0f}): "
+                       "a scale common to those channels (the twin's level), not one faulty sensor")
             if why:
                 v = Verdict(False, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic)
         out.append((hf, v, d))

@@ -172,8 +172,8 @@ class AirSpringTermFit:
                 f"force, acting{band}. A re-fitted linear air-spring stiffness and damping do not explain it "
                 f"(held-out error of the car-body accelerometers at {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz: twin "
                 f"{self.heldout_nrmse_twin:.3f}, with k and c re-fitted {self.heldout_nrmse_before:.3f}, with the "
-                f"nonlinear force {self.heldout_nrmse_after:.3f}; delta BIC {self.delta_bic:+.0f}). Check the air springs' characteristic (auxiliary volume, "
-                f"levelling valves, bump stops) on the vehicle.")
+                f"nonlinear force {self.heldout_nrmse_after:.3f}; delta BIC {self.delta_bic:+.0f}). Check the air "
+                f"springs' characteristic (auxiliary volume, levelling valves, bump stops) on the vehicle.")
 
 
 class AirSpringTermFinder:

@@ -12,8 +12,9 @@ by all springs: cubic stiffening ``d^3`` and an asymmetric ``d^2`` (stiffer one 
 Velocity-squared damping ``d_rate*|d_rate|`` is in the library but not a default candidate: on 16
 generator cases with a cubic air spring and random design errors (session 15) it was co-selected with
 d^3 in 9 (negative coefficient), took two of them below the held-out gate (15/16 found without it,
-13/16 with it; clean cases 0/8 either way) and spread the reported band to 11-20 Hz. A re-fitted linear stiffness and damping (``d``, ``d_rate``) are always in the
-model, so a nonlinear term has to explain what a change of the air springs' k and c cannot; terms
+13/16 with it; clean cases 0/8 either way) and spread the reported band to 11-20 Hz. A re-fitted
+linear stiffness and damping (``d``, ``d_rate``) are always in the model, so a nonlinear term has to
+explain what a change of the air springs' k and c cannot; terms
 are chosen by sequentially thresholded least squares and BIC (``discovery.sparse_regression_report``),
 fitted on the training pass and judged on the held-out passes.
 

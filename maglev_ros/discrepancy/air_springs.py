@@ -31,11 +31,12 @@ coefficient over all springs, mapped per accelerometer), not a generic polynomia
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import signal
+
+from maglev_ros.irregularity.integration import _runs
 
 from .acceptance import AcceptanceConfig
 from .discovery import sparse_regression_report
@@ -51,9 +52,14 @@ WORDS = {"d^3": "grows with the cube of the air-spring deflection",
 UNITS = {"d": "N/m", "d_rate": "N s/m", "d^3": "N/m^3", "d^2": "N/m^2", "d_rate*|d_rate|": "N s^2/m^2"}
 
 
+def _air_springs(model) -> list:
+    """The secondary air springs of a vehicle model (its connections named ``secondary<k>``)."""
+    return [c for c in model.connections if c.name.startswith("secondary")]
+
+
 def air_spring_rows(model) -> np.ndarray:
     """(n_springs, n_dof) rows T of the secondary air springs: d = T z (frame point minus car point)."""
-    sec = [c for c in model.connections if c.name.startswith("secondary")]
+    sec = _air_springs(model)
     return np.stack([model.point_row(c.body_a, c.x_m) - model.point_row(c.body_b, c.x_m) for c in sec]) \
         if sec else np.zeros((0, model.n_dof))
 
@@ -80,18 +86,6 @@ def _library(d: np.ndarray, d_rate: np.ndarray) -> np.ndarray:
     return np.stack([d, d_rate, d ** 3, d ** 2, d_rate * np.abs(d_rate)], axis=-1)
 
 
-def _longest_run(ok: np.ndarray) -> slice:
-    best, start = (0, 0), None
-    for i, v in enumerate(np.append(ok, False)):
-        if v and start is None:
-            start = i
-        elif not v and start is not None:
-            if i - start > best[1] - best[0]:
-                best = (start, i)
-            start = None
-    return slice(*best)
-
-
 def body_series(spec, rd, band_hz=BAND_HZ) -> list[tuple[str, np.ndarray, np.ndarray, float, np.ndarray]]:
     """Per car-body accelerometer: (name, band-passed residual (n,), band-passed terms (n, n_terms),
     sample rate after decimation, band-passed measurement (n,)), over the longest stretch the
@@ -112,7 +106,7 @@ def body_series(spec, rd, band_hz=BAND_HZ) -> list[tuple[str, np.ndarray, np.nda
         terms = np.stack([np.interp(ch.time_s, t, terms_t[:, j]) for j in range(terms_t.shape[1])], axis=1)
         y = ch.values - pred[n]
         ok = np.isfinite(y) & vehicle_over_valid(rec, ch.time_s, spec.config.vehicle.magnet_offsets_m)
-        run = _longest_run(ok)
+        run = slice(*max(_runs(ok), key=lambda r: r[1] - r[0], default=(0, 0)))
         fs = ch.sample_rate_hz
         if run.stop - run.start < int(4 * fs / band_hz[0]) or band_hz[1] >= 0.45 * fs:
             continue
@@ -137,6 +131,7 @@ class AirSpringTermFit:
     accepted: bool
     terms: dict
     linear_terms: dict
+    heldout_nrmse_twin: float                 # the calibrated twin itself, no air-spring term re-fitted
     heldout_nrmse_before: float
     heldout_nrmse_after: float
     delta_bic: float
@@ -145,7 +140,6 @@ class AirSpringTermFit:
     max_deflection_m: float
     channels: tuple[str, ...]
     reasons: tuple[str, ...] = field(default_factory=tuple)
-    heldout_nrmse_twin: float = math.nan      # the calibrated twin itself, no air-spring term re-fitted
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -242,12 +236,12 @@ class AirSpringTermFinder:
             # held-out pass (tune 40: 0.059 -> 0.099): the nonlinear model must also beat the twin as is
             reasons.append(f"held-out error {twin:.3f} of the twin as calibrated -> {after:.3f} with the nonlinear "
                            f"force is not a clear improvement")
-        return AirSpringTermFit(not reasons, terms, lin, before, after, float(ev["delta_bic"]), band, share, d_max,
-                                chans, tuple(reasons), twin)
+        return AirSpringTermFit(not reasons, terms, lin, twin, before, after, float(ev["delta_bic"]), band, share,
+                                d_max, chans, tuple(reasons))
 
 
 def _air_spring_stiffness(spec) -> float:
-    sec = [c for c in _vehicle_model(spec).connections if c.name.startswith("secondary")]
+    sec = _air_springs(_vehicle_model(spec))
     return float(np.mean([c.stiffness_n_per_m for c in sec])) if sec else 0.0
 
 

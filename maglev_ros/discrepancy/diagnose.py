@@ -891,7 +891,7 @@ def _peer_referenced(fits: list, sig_of: dict, recs: list, same_heldout: bool, a
 
 
 def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset(), acc_bic: float = -10.0,
-                scale_carries=None) -> list:
+                scale_carries=lambda hf: True) -> list:
     """The sensor_error signature is ONE channel off while the others agree with the twin: a
     scale/offset/drift fit that a channel of the same group (same quantity, e.g. the other
     magnet's gap) matches by at least half its training delta BIC points to a mismatch common to
@@ -904,7 +904,7 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
     A fit whose held-out gain needs its scale is also rejected when a peer fits a scale of the same
     sign and at least half its size with BIC support of its own (``acc_bic``): the twin's level of
     that quantity is off. ``scale_carries(fit)``: True when its offset and drift alone do not clear the
-    held-out gate (None: when they are within the noise, the hypothesis' own test)."""
+    held-out gate (the diagnosis judges that on the held-out passes; default: every fit)."""
     group = {n: c.group for n, c in rec.channels.items()}
     sens = {hf.hyp.location["channels"][0]: (d, float(hf.params[0])) for hf, v, d in fits
             if hf.hyp.effect == "sensor_error" and not hf.hyp.label.endswith(".dropout")}
@@ -928,9 +928,7 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
             # hypothesis' 3-sigma test over the record, yet it alone made the held-out gain (heldout 14)
             shared = [(p, dp, lp) for p, dp, lp in peers if not (n in scale_faulty and p not in scale_faulty)
                       and dp <= acc_bic and np.sign(lp) == np.sign(ln_s) and abs(lp) >= 0.5 * abs(ln_s)]
-            if why is None and shared and (
-                    scale_carries(hf) if scale_carries is not None
-                    else not hf.hyp.plausible(np.array([0.0, *map(float, hf.params[1:])]))[0]):
+            if why is None and shared and scale_carries(hf):
                 p, dp, lp = shared[0]
                 why = (f"{p} (same quantity) reads x{math.exp(lp):.2f} against the twin too (delta BIC {dp:+.0f}): "
                        "a scale common to those channels (the twin's level), not one faulty sensor")

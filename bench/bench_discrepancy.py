@@ -82,7 +82,10 @@ def score(results):
         row["extra"] += any(m["effect"] != eff or (ch_true and ch_true not in m["location"]["channels"])
                             for m in found[1:])
         if not found:
+            # a missed effect is a case where the tool gained nothing: it counts in the median
             row["missed"] += 1
+            gains_all.append(0.0)
+            gains_ch.append(0.0)
             continue
         top = found[0]
         if top["effect"] == eff:

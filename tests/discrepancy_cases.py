@@ -39,6 +39,7 @@ from scipy.linalg import eigh
 from maglev_ros.discrepancy.model import body_point_row, flexible_vehicle
 from maglev_ros.discrepancy.recording import TOPIC_GROUP, Recording, recording_from_arrays
 from maglev_ros.twin.coupling import PassResult, TwinStepper
+from maglev_ros.twin.spring_force import advance_with_spring_force
 from maglev_ros.twin.design import SpanSpec, line_spans, twin_config, with_levitation
 from maglev_ros.twin.guideway import Guideway, ModalBasis, SpanFE, beam_element
 from maglev_ros.twin.irregularity_psd import psd_by_name, random_profile
@@ -250,40 +251,16 @@ def advance_cubic(st: TwinStepper, t_end_s: float, v: float, k3: float, kick_eve
                   ) -> tuple[PassResult, np.ndarray]:
     """``st.advance(t_end_s, v)`` with a cubic force F = k3 d^3 added in every secondary air spring
     (stiffening: it acts like the linear spring force k d, equal and opposite on car body and frame),
-    by operator splitting: the linear truth is advanced ``kick_every`` output samples (1 ms at the
-    1 kHz truth rate; the stepper cannot stop between output samples), then the impulse of the
-    cubic force over that interval is added to the DOF velocities, dv = -M^-1 T^T F dt, with d from
-    the state at the end of the interval. M is the model's mass matrix (the closed loop's
-    acceleration feedback only adds mass on magnet DOFs, which no air spring touches).
-
-    The recorded DOF accelerations (``vehicle_acc_mps2``, car-body accelerometers) get the cubic
-    force's instantaneous acceleration -M^-1 T^T F added (the stepper's output is the linear model's);
+    by operator splitting around the linear truth (the twin's
+    :func:`maglev_ros.twin.spring_force.advance_with_spring_force`: the truth is advanced
+    ``kick_every`` output samples, 1 ms at the 1 kHz truth rate, then the cubic force's impulse is
+    added to the DOF velocities). The springs are found here by topology (:func:`secondary_springs`),
+    not by the twin's names. The recorded car-body accelerations carry the cubic force's share;
     magnet accelerations, gaps and currents need nothing (no air spring acts on a magnet's body).
     Returns the concatenated PassResult (same form as one ``advance``) and F (n, n_sec) [N] at the
-    output samples. With k3 = 0 the result equals one ``advance`` call to floating point (the
-    vehicle position is summed per call instead of per block)."""
-    model = st.vehicle.model
-    nd = model.n_dof
-    _, rows = secondary_springs(model)
-    minv_tt = np.linalg.solve(model.mass, rows.T)                   # (n_dof, n_sec)
-    fs = st.fs_out_hz
-    k_now = st._k // st.n_sub
-    k_end = int(math.floor((t_end_s - st.t0_s) * fs + 1e-9))
-    parts, forces = [], []
-    while k_now < k_end:
-        k_next = min(k_now + kick_every, k_end)
-        r = st.advance(st.t0_s + (k_next + 0.5) / fs, v)
-        x = st._x.copy()
-        f = k3 * (rows @ x[:nd]) ** 3
-        x[nd:2 * nd] -= minv_tt @ f * ((k_next - k_now) / fs)
-        st.set_vehicle_state(x)
-        fr = k3 * (r.vehicle_disp_m @ rows.T) ** 3                    # at the recorded samples
-        parts.append(replace(r, vehicle_acc_mps2=r.vehicle_acc_mps2 - fr @ minv_tt.T))
-        forces.append(fr)
-        k_now = k_next
-    if not parts:
-        return st.advance(t_end_s, v), np.zeros((0, rows.shape[0]))
-    return PassResult.concat(parts), np.concatenate(forces, axis=0)
+    output samples. With k3 = 0 the result equals one ``advance`` call to floating point."""
+    _, rows = secondary_springs(st.vehicle.model)
+    return advance_with_spring_force(st, t_end_s, v, rows, lambda d, d_rate: k3 * d ** 3, every=kick_every)
 
 
 def power_band(x: np.ndarray, fs: float, share: float = 0.9) -> tuple[float, float]:

@@ -18,6 +18,17 @@ explain what a change of the air springs' k and c cannot; terms
 are chosen by sequentially thresholded least squares and BIC (``discovery.sparse_regression_report``),
 fitted on the training pass and judged on the held-out passes.
 
+The regression reads the deflections off the LINEAR twin; a strong nonlinear force changes them (a
+stiffening spring deflects less), so the regression's law is biased low and can even fail the held-out
+gate (blind 41, cubic force 1.2x the linear one at the peak: held-out 0.199 with k, c re-fitted, 0.234
+with the regression's k3). A found law is therefore re-fitted with the twin SIMULATED with it
+(:mod:`maglev_ros.twin.spring_force`, ``ModelSpec.air_spring_force``): a fixed point that regresses the
+residual on the terms of the simulated deflections, 3 steps (blind 41: held-out 0.057; k3 6.1e9 vs truth
+6.1e9), and the null (k, c re-fitted) alike; the gates are then judged on those simulated models. k3 itself
+carries the reconstructed rail's error cubed (the twin's largest deflection can be 2/3 of the truth's);
+the force at the largest deflection over the linear spring force there (``share_at_peak``) is the robust
+size (0.98-1.02 vs truth 0.97-1.13 on generator seeds 5/11, session 16).
+
 Band 2-8 Hz, residual and terms through the same band-pass (a linear filter commutes with the
 regression). Below ~2 Hz the body residual is ruled by the reconstructed rail's long-wave error
 (the inertial reference is high-passed at 0.6 Hz): residual/measured 0.12-0.38 at 0.3-2 Hz against
@@ -39,29 +50,17 @@ from scipy import signal
 from maglev_ros.irregularity.integration import _runs
 
 from .acceptance import AcceptanceConfig
-from .discovery import sparse_regression_report
+from .discovery import _bic_ts, sparse_regression_report
 from .irregularity import vehicle_over_valid
-from .model import _vehicle_model, body_point_row, predict, simulate
+from .model import AIR_SPRING_TERMS, _air_springs, _vehicle_model, air_spring_rows, body_point_row, predict, simulate
 
 BAND_HZ = (2.0, 8.0)
-NAMES = ("d", "d_rate", "d^3", "d^2", "d_rate*|d_rate|")
+NAMES = tuple(AIR_SPRING_TERMS)
 LINEAR = ("d", "d_rate")
 WORDS = {"d^3": "grows with the cube of the air-spring deflection",
          "d^2": "grows with the square of the deflection (stiffer one way than the other)",
          "d_rate*|d_rate|": "grows with the square of the deflection rate (velocity-squared damping)"}
 UNITS = {"d": "N/m", "d_rate": "N s/m", "d^3": "N/m^3", "d^2": "N/m^2", "d_rate*|d_rate|": "N s^2/m^2"}
-
-
-def _air_springs(model) -> list:
-    """The secondary air springs of a vehicle model (its connections named ``secondary<k>``)."""
-    return [c for c in model.connections if c.name.startswith("secondary")]
-
-
-def air_spring_rows(model) -> np.ndarray:
-    """(n_springs, n_dof) rows T of the secondary air springs: d = T z (frame point minus car point)."""
-    sec = _air_springs(model)
-    return np.stack([model.point_row(c.body_a, c.x_m) - model.point_row(c.body_b, c.x_m) for c in sec]) \
-        if sec else np.zeros((0, model.n_dof))
 
 
 def _deflections(spec, rec):
@@ -83,7 +82,7 @@ def _deflections(spec, rec):
 
 def _library(d: np.ndarray, d_rate: np.ndarray) -> np.ndarray:
     """(n, n_springs, n_terms) per spring, columns in NAMES order."""
-    return np.stack([d, d_rate, d ** 3, d ** 2, d_rate * np.abs(d_rate)], axis=-1)
+    return np.stack([AIR_SPRING_TERMS[k](d, d_rate) for k in NAMES], axis=-1)
 
 
 def body_series(spec, rd, band_hz=BAND_HZ) -> list[tuple[str, np.ndarray, np.ndarray, float, np.ndarray]]:
@@ -140,6 +139,7 @@ class AirSpringTermFit:
     max_deflection_m: float
     channels: tuple[str, ...]
     reasons: tuple[str, ...] = field(default_factory=tuple)
+    regression_terms: dict = field(default_factory=dict)     # the regression's law, before the simulated re-fit
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -167,7 +167,8 @@ class AirSpringTermFit:
                 f"force, acting{band}. A re-fitted linear air-spring stiffness and damping do not explain it "
                 f"(held-out error of the car-body accelerometers at {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz: twin "
                 f"{self.heldout_nrmse_twin:.3f}, with k and c re-fitted {self.heldout_nrmse_before:.3f}, with the "
-                f"nonlinear force {self.heldout_nrmse_after:.3f}; delta BIC {self.delta_bic:+.0f}). Check the air "
+                f"nonlinear force {self.heldout_nrmse_after:.3f}, the twin simulated with it; delta BIC "
+                f"{self.delta_bic:+.0f}). Check the air "
                 f"springs' characteristic (auxiliary volume, levelling valves, bump stops) on the vehicle.")
 
 
@@ -176,12 +177,41 @@ class AirSpringTermFinder:
     no air spring in the twin's vehicle, or no usable stretch)."""
 
     def __init__(self, acceptance=None, band_hz=BAND_HZ, threshold: float = 0.05,
-                 max_share: float = 10.0, terms=("d^3", "d^2")):
+                 max_share: float = 10.0, terms=("d^3", "d^2"), n_iter: int = 3):
         self.acceptance = acceptance
         self.terms = tuple(terms)            # the nonlinear candidates (LINEAR are always in)
         self.band_hz = tuple(band_hz)
         self.threshold = threshold
         self.max_share = max_share
+        self.n_iter = n_iter        # simulated re-fits of a found law (0: the regression's law stands)
+
+    def _simulated(self, spec, rd_train, rd_test, names, start: dict) -> dict:
+        """The force law with ``names`` fitted with the twin SIMULATED with it (operator splitting,
+        :mod:`maglev_ros.twin.spring_force`): Gauss-Newton-like fixed point, each step regressing the
+        training residual on the terms of the twin's own deflections with the current law, from
+        ``start``; ``n_iter`` steps, the best training fit kept. The regression on the linear twin's
+        deflections is biased once the force changes the deflections (blind 41, cubic force 1.2x the
+        linear one at the peak: regression held-out 0.234 vs 0.199 without it; simulated 0.049).
+        Returns {"law", "rss", "n_eff", "heldout" (|residual| / |measured| over the held-out passes)}."""
+        cols = [NAMES.index(k) for k in names]
+        law = {k: float(start.get(k, 0.0)) for k in names}
+        best = None
+        for it in range(self.n_iter + 1):
+            sp = spec.with_(air_spring_force=tuple(law.items()))
+            tr = self._stack(sp, rd_train)
+            if tr is None:
+                return None
+            rss = float(np.sum(tr[1] ** 2))
+            if best is None or rss < best["rss"]:
+                best = {"law": dict(law), "rss": rss, "n_eff": tr[2], "size": tr[1].size, "spec": sp}
+            if it == self.n_iter:
+                break
+            coef = np.linalg.lstsq(tr[0][:, cols], tr[1], rcond=None)[0]
+            # body acceleration per unit term -> force per spring (the spring pushes the car down)
+            law = {k: law[k] - float(c) for k, c in zip(names, coef)}
+        te = self._stack(best["spec"], rd_test)
+        best["heldout"] = float(np.linalg.norm(te[1]) / max(np.linalg.norm(te[3]), 1e-300)) if te else float("nan")
+        return best
 
     def _stack(self, spec, rds):
         th, ys, n_eff, ms = [], [], 0, []
@@ -214,9 +244,30 @@ class AirSpringTermFinder:
         # measured band signal, as every NRMSE of the diagnosis (the twin as calibrated: |r| / |m|)
         twin = float(np.linalg.norm(te[1]) / max(np.linalg.norm(te[3]), 1e-300))
         before, after = twin * float(ev["heldout_nrmse_before"]), twin * float(ev["heldout_nrmse_after"])
+        dbic = float(ev["delta_bic"])
         reasons = [r if not r.startswith("held-out residual") else
                    f"held-out error {before:.3f} (k, c re-fitted) -> {after:.3f} is not a clear improvement"
                    for r in rep["reasons"]]
+        regression = dict(terms)
+        acc = self.acceptance or AcceptanceConfig()
+        if terms and self.n_iter > 0:
+            # the twin simulated with the law (and, for the null, with the re-fitted linear k, c alone)
+            m1 = self._simulated(spec, rd_train, rd_test, LINEAR + tuple(terms), {k: v for k, v in terms.items()})
+            m0 = self._simulated(spec, rd_train, rd_test, LINEAR, {})
+            if m1 is not None and m0 is not None:
+                terms = {k: m1["law"][k] for k in terms}
+                lin = {k: m1["law"][k] for k in LINEAR}
+                n = m1["n_eff"]
+                dbic = float(_bic_ts(m1["rss"] * n / m1["size"], n, len(LINEAR) + len(terms))
+                             - _bic_ts(m0["rss"] * n / m0["size"], n, len(LINEAR)))
+                before, after = m0["heldout"], m1["heldout"]
+                reasons = []
+                if not (before - after >= acc.min_rel_gain * before and before - after >= acc.min_abs_gain):
+                    reasons.append(f"held-out error {before:.3f} (k, c re-fitted) -> {after:.3f} is not a clear improvement")
+                if not dbic <= acc.max_delta_bic:
+                    reasons.append(f"delta BIC {dbic:+.1f} does not beat the linear terms "
+                                   f"(needs <= {acc.max_delta_bic:g})")
+                got = _deflections(m1["spec"], rd_train[0].rec)
         if got is not None:
             t, d, d_rate, _ = got
             d_max = float(np.max(np.abs(d)))
@@ -230,14 +281,13 @@ class AirSpringTermFinder:
                 reasons.append(f"the fitted nonlinear force is {share:.1f}x the linear spring force at the largest "
                                f"deflection: not a plausible air spring")
         chans = tuple(sorted({n for rd in rd_train for n, c in rd.rec.channels.items() if c.group == "body_accel"}))
-        acc = self.acceptance or AcceptanceConfig()
         if terms and not (after <= twin * (1 - acc.min_rel_gain)):
             # the re-fitted k, c can fit the training pass's rail error and do worse than the twin on the
             # held-out pass (tune 40: 0.059 -> 0.099): the nonlinear model must also beat the twin as is
             reasons.append(f"held-out error {twin:.3f} of the twin as calibrated -> {after:.3f} with the nonlinear "
                            f"force is not a clear improvement")
-        return AirSpringTermFit(not reasons, terms, lin, twin, before, after, float(ev["delta_bic"]), band, share,
-                                d_max, chans, tuple(reasons))
+        return AirSpringTermFit(not reasons, terms, lin, twin, before, after, dbic, band, share,
+                                d_max, chans, tuple(reasons), regression)
 
 
 def _air_spring_stiffness(spec) -> float:

@@ -15,6 +15,8 @@ pieces, without changing the twin files:
   Pade-free approximation of a pure delay, exact to O((w tau)^2) at the levitation frequencies;
 - magnet nonlinearity: smooth current saturation I0 + L tanh((I - I0)/L) in the twin's force
   kernel (``TwinStepper(current_limit_a=L)``, :mod:`maglev_ros.twin.coupling`);
+- nonlinear air springs (discovery): a force law f(d, d_rate) per secondary air spring, added by
+  operator splitting around the stepper (:mod:`maglev_ros.twin.spring_force`);
 - sensor errors (scale, offset, drift) act on the predicted channel after the simulation;
 - stochastic additions (ambient excitation) act on band powers (see :mod:`.features`).
 """
@@ -30,6 +32,7 @@ from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_levitation
 from maglev_ros.twin.guideway import assemble_span
 from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
+from maglev_ros.twin.spring_force import advance_with_spring_force
 from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
 
 from .recording import Recording
@@ -56,6 +59,7 @@ class ModelSpec:
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
     dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
+    air_spring_force: tuple[tuple[str, float], ...] = ()    # (term of AIR_SPRING_TERMS, coefficient SI) per air spring
     dt_max_s: float | None = None
 
     def with_(self, **kw) -> "ModelSpec":
@@ -221,6 +225,32 @@ def guideway_modal(spec: ModelSpec):
     return gw.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
 
 
+# terms of a force per air spring, as functions of its deflection d [m] (> 0 compresses it) and rate
+AIR_SPRING_TERMS = {"d": lambda d, v: d, "d_rate": lambda d, v: v, "d^3": lambda d, v: d ** 3,
+                    "d^2": lambda d, v: d ** 2, "d_rate*|d_rate|": lambda d, v: v * np.abs(v)}
+
+
+def _air_springs(model: VehicleModel) -> list:
+    """The secondary air springs of a vehicle model (its connections named ``secondary<k>``)."""
+    return [c for c in model.connections if c.name.startswith("secondary")]
+
+
+def air_spring_rows(model: VehicleModel) -> np.ndarray:
+    """(n_springs, n_dof) rows T of the secondary air springs: d = T z (frame point minus car point)."""
+    sec = _air_springs(model)
+    return np.stack([model.point_row(c.body_a, c.x_m) - model.point_row(c.body_b, c.x_m) for c in sec]) \
+        if sec else np.zeros((0, model.n_dof))
+
+
+def air_spring_force_law(terms) -> callable:
+    """f(d, d_rate) = sum of coefficient x term over ``terms`` ((name, coefficient) pairs)."""
+    terms = tuple(terms)
+
+    def force(d, d_rate):
+        return sum(c * AIR_SPRING_TERMS[k](d, d_rate) for k, c in terms) + 0.0 * d
+    return force
+
+
 _CACHE: dict = {}
 _CACHE_MAX = 256
 
@@ -249,9 +279,12 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     parts = []
     t = t0
     t_end = rec.t1_s - tau + 1.0 / fs
+    rows = air_spring_rows(st.vehicle.model) if spec.air_spring_force else None
+    force = air_spring_force_law(spec.air_spring_force) if spec.air_spring_force else None
     while t < t_end - 1e-12:
         tn = min(t_end, t + 0.25)
-        parts.append(st.advance(tn, float(np.interp(tn, tp, vp))))
+        v = float(np.interp(tn, tp, vp))
+        parts.append(st.advance(tn, v) if force is None else advance_with_spring_force(st, tn, v, rows, force)[0])
         t = tn
     res = PassResult.concat(parts)
     if tau:

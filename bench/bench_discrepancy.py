@@ -94,11 +94,13 @@ def score(results):
             g = (ev["heldout_nrmse_before"] - ev["heldout_nrmse_after"]) / max(ev["heldout_nrmse_before"], 1e-12)
             row["gain"].append(g)
             gains_all.append(g)
+            # on its own channels: where the effect acts on a few (levitation, a sensor, the car body);
+            # an effect of the whole guideway acts on the whole recording
             local = top.get("heldout_on_its_channels")
-            if local and local["nrmse_before"] > 0:
-                gc = (local["nrmse_before"] - local["nrmse_after"]) / local["nrmse_before"]
-                row["gain_ch"].append(gc)
-                gains_ch.append(gc)
+            gc = ((local["nrmse_before"] - local["nrmse_after"]) / local["nrmse_before"]
+                  if local and local["nrmse_before"] > 0 else g)
+            row["gain_ch"].append(gc)
+            gains_ch.append(gc)
             tl = truth.get("location") or {}
             if "position_m" in tl and top["location"]["position_m"]:
                 p = top["location"]["position_m"]

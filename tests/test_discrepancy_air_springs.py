@@ -89,3 +89,25 @@ def test_a_strong_cubic_air_spring_needs_the_twin_simulated_with_it():
     regression = _fit(cubic, n_iter=0)
     assert regression.share_at_peak < 0.6 * truth["cubic_share_peak"]
     assert fit.heldout_nrmse_after < 0.7 * regression.heldout_nrmse_after
+
+
+def test_the_diagnosis_reports_an_air_spring_law_as_missing_physics_and_the_twin_after_carries_it():
+    """End to end (diagnose): a cubic air spring on a line with nothing else wrong is named
+    air_spring_nonlinearity (category suspension, not a catalogue name), in the truth's band, and
+    the twin after (simulated with the law) fits the car-body accelerometers better."""
+    from maglev_ros.discrepancy.catalogue import EFFECTS
+    from maglev_ros.discrepancy.diagnose import diagnose
+    kw = dict(seed=11, speeds=(24.0, 32.0), variant=FAST, n_spans=2, design_error=NO_DESIGN_ERROR)
+    case = make_case("c", "suspension_cubic", {"cubic_ratio": 1.0, "magnitude": 1.0}, **kw)
+    rep = diagnose(case.passes, case.ambient).to_dict()
+    assert [m["effect"] for m in rep["missing_physics"]] == ["air_spring_nonlinearity"]
+    m = rep["missing_physics"][0]
+    assert m["category"] == "suspension" and m["effect"] not in EFFECTS
+    assert set(m["location"]["channels"]) == {"B1A", "B2A"}
+    assert m["parameters"]["cubic_stiffness_n_per_m3"] > 0                       # stiffening, as the truth
+    b0, b1 = case.truth["params"]["band_hz"]
+    assert m["frequency_hz"][0] <= b1 and b0 <= m["frequency_hz"][1]
+    ev = m["evidence"]
+    assert ev["heldout_nrmse_after"] < 0.6 * ev["heldout_nrmse_before"] and ev["delta_bic"] < -10
+    assert rep["fit_after"]["nrmse"] <= rep["fit_before"]["nrmse"]
+    assert any(d["kind"] == "suspension_term" and d["model"]["accepted"] for d in rep["discovery"])

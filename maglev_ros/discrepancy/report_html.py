@@ -182,7 +182,11 @@ def render(diagnosis) -> str:
     if rds:
         gains = {n: before["per_channel"][n] - after["per_channel"].get(n, before["per_channel"][n])
                  for n in before["per_channel"]}
-        show = sorted(gains, key=gains.get, reverse=True)[:2]
+        # the channels the chosen physics acts on first (a law judged on a band of them need not top
+        # the whole-recording gains), then the largest gains
+        own = [c for m in rep["missing_physics"][:1] for c in m["location"]["channels"] if c in gains]
+        show = (sorted(own, key=gains.get, reverse=True)
+                + [n for n in sorted(gains, key=gains.get, reverse=True) if n not in own])[:2]
         rd, rd_after = rds[-1], (ex.get("rd_after") or rds)[-1]
         for n in show:
             if n in rd.rec.channels:

@@ -7,7 +7,9 @@ Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|b
 Per effect: cases, correct effect, wrong effect, missed, localization error (girder/bearing: |reported
 place centre - true place| in m; sensor_error: share with the right channel), median held-out NRMSE
 reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``),
-cases naming a further effect besides the concealed one (+extra);
+cases naming a further effect besides the concealed one (+extra) (a missed effect counts as zero gain);
+the floor (the calibrated twin's NRMSE on the clean cases: what a perfect model of a concealed effect
+could reach) and the median reduction achievable down to it;
 clean cases: false alarms (and accepted open-ended discoveries); out-of-catalogue: located (girder attachment: the
 place/span is right and the band holds its own frequency or a band where it changes the recording, both counted; cubic air-spring term ("suspension_cubic"): a discovery sensed on the
 vehicle or a mismatch on vehicle channels only, in a band overlapping the cubic force's 90 % power band) and forced into
@@ -220,8 +222,31 @@ def print_table(title, results):
           f"{100 * fa:.0f} % (target <= 5 %); median held-out NRMSE reduction where an effect is present: "
           f"{100 * med:.0f} % over the whole recording, {100 * med_ch:.0f} % on the effect's own channels "
           f"(target >= 50 %)")
+    floor = _floor(results)
+    if floor:
+        print(f"floor: the calibrated twin on the clean cases fits to NRMSE {floor['clean_nrmse']:.3f} (median, all "
+              f"passes), what a perfect model of a concealed effect could reach; on the cases with an effect found "
+              f"(all passes) {floor['before']:.3f} -> {floor['after']:.3f}, median reduction {100 * floor['gain']:.0f} % "
+              f"of an achievable {100 * floor['achievable']:.0f} % (down to that floor)")
     return {"rows": rows, "clean": clean, "ooc": ooc, "correct_rate": ncorr / max(nc, 1), "false_alarm_rate": fa,
-            "median_gain": med, "median_gain_own_channels": med_ch}
+            "median_gain": med, "median_gain_own_channels": med_ch, "floor": floor}
+
+
+def _floor(results) -> dict | None:
+    """The noise/model-error floor of a split: the calibrated twin's whole-recording NRMSE on its clean
+    cases (nothing concealed), against which the gain on the effect cases is put in scale (all passes:
+    the clean cases have no held-out verdict)."""
+    from discrepancy_cases import OOC
+    clean = [r["report"]["fit_before"]["nrmse"] for r in results if r["effect"] is None]
+    eff = [(r["report"]["fit_before"]["nrmse"], r["report"]["fit_after"]["nrmse"]) for r in results
+           if r["effect"] is not None and r["effect"] not in OOC and r["report"]["missing_physics"]
+           and r["report"]["missing_physics"][0]["effect"] == r["effect"]]
+    if not clean or not eff:
+        return None
+    fl = float(np.median(clean))
+    b, a = np.array(eff).T
+    return {"clean_nrmse": fl, "before": float(np.median(b)), "after": float(np.median(a)),
+            "gain": float(np.median((b - a) / b)), "achievable": float(np.median(np.clip((b - fl) / b, 0, 1)))}
 
 
 def main():

@@ -564,10 +564,12 @@ class Diagnoser:
                 rejected += _resonator_rejections(cand, "it fits, but the stiffness loss explains the misfit better "
                                                         f"(held-out NRMSE {held_chosen:.3f})")
         nr_after, pc_after = fit_report(final_spec, rd_fin)
-        missing = ([air_missing] if air_missing else []) + [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
+        missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                                signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
                                    hf.hyp.location["channels"][0]) if id(hf) in by_peers else None,
                                by_peers.get(id(hf))) for hf, v, d in chosen]
+        if air_missing:
+            missing.insert(0, air_missing)
         report = {
             "schema": SCHEMA,
             "fit_before": {"nrmse": nr_before, "per_channel": pc_before},

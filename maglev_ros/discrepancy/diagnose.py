@@ -479,7 +479,8 @@ class Diagnoser:
             disc += mode_shift_findings(detuned, base_spec_spans(final_spec))
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
-                # the catalogue's gates; reported in ``discovery`` only, never as missing_physics
+                # the catalogue's gates; an added resonator is reported in ``discovery`` only, never as
+                # missing_physics (an accepted one was placed on the wrong span once, session 6)
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, log=notes.append)
             # the air springs, from the car-body accelerometers (their low-band misfit is the rail's
             # long-wave error on every case, so no mismatch points there: always tried when they exist)

@@ -457,6 +457,20 @@ def _bic_ts(rss: float, n: int, k: int) -> float:
     return n * math.log(max(rss, 1e-300) / n) + k * math.log(n)
 
 
+def term_gate_reasons(before: float, after: float, dbic: float, acc,
+                      what: str = "held-out residual {b:.3f} -> {a:.3f}") -> list[str]:
+    """Why nonlinear terms fail the catalogue's margins against the linear terms alone: held-out error
+    ``before`` -> ``after`` (relative and absolute gain) and training delta BIC. ``what`` names the
+    held-out error in the message."""
+    why = []
+    gain = before - after
+    if not (gain >= acc.min_rel_gain * before and gain >= acc.min_abs_gain):
+        why.append(f"{what.format(b=before, a=after)} is not a clear improvement")
+    if not dbic <= acc.max_delta_bic:
+        why.append(f"delta BIC {dbic:+.1f} does not beat the linear terms (needs <= {acc.max_delta_bic:g})")
+    return why
+
+
 def sparse_regression_report(theta_tr, y_tr, theta_te, y_te, n_eff_tr: int, n_eff_te: int,
                              threshold: float = 0.05, acceptance=None, names=TERM_NAMES,
                              linear=LINEAR_TERMS) -> dict:
@@ -501,14 +515,8 @@ def sparse_regression_report(theta_tr, y_tr, theta_te, y_te, n_eff_tr: int, n_ef
     nr0 = math.sqrt(rss(theta_te, y_te, c0) / max(float(np.sum(y_te ** 2)), 1e-300))
     nr1 = math.sqrt(rss(theta_te, y_te, c1) / max(float(np.sum(y_te ** 2)), 1e-300))
     nonlin = {names[j]: float(c1[j]) for j in range(len(names)) if j not in lin and c1[j] != 0}
-    why = []
-    if not nonlin:
-        why.append("no nonlinear term survives the sparse regression")
-    gain = nr0 - nr1
-    if not (gain >= acc.min_rel_gain * nr0 and gain >= acc.min_abs_gain):
-        why.append(f"held-out residual {nr0:.3f} -> {nr1:.3f} is not a clear improvement")
-    if not dbic <= acc.max_delta_bic:
-        why.append(f"delta BIC {dbic:+.1f} does not beat the linear terms (needs <= {acc.max_delta_bic:g})")
+    why = [] if nonlin else ["no nonlinear term survives the sparse regression"]
+    why += term_gate_reasons(nr0, nr1, dbic, acc)
     return {"kind": "suspension_term", "terms": nonlin,
             "linear_terms": {names[j]: float(c1[j]) for j in lin},
             "accepted": not why, "reasons": why,

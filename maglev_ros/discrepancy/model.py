@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -242,7 +242,7 @@ def air_spring_rows(model: VehicleModel) -> np.ndarray:
         if sec else np.zeros((0, model.n_dof))
 
 
-def air_spring_force_law(terms) -> callable:
+def air_spring_force_law(terms) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
     """f(d, d_rate) = sum of coefficient x term over ``terms`` ((name, coefficient) pairs)."""
     terms = tuple(terms)
 

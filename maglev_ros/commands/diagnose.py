@@ -22,15 +22,30 @@ def add_arguments(p) -> None:
                    help="pass recording; the first calibrates, the others are held out (repeatable)")
     p.add_argument("--out", metavar="DIR", required=True, help="output directory (report.json, report.html)")
     p.add_argument("--no-html", action="store_true", help="write report.json only")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (stage, count, ETA)")
 
 
 def run(args) -> int:
+    from maglev_ros.progress import for_cli
+    with for_cli(args.quiet, "diagnose") as progress:
+        d, out = _diagnose(args, progress)
+    rep = d.to_dict()
+    print(f"fit before {rep['fit_before']['nrmse']:.3f}, after {rep['fit_after']['nrmse']:.3f}; "
+          f"{len(rep['mismatches'])} mismatch(es); missing physics: "
+          f"{', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}")
+    print(f"wrote {out / 'report.json'}" + ("" if args.no_html else f" and {out / 'report.html'}"))
+    return 0
+
+
+def _diagnose(args, progress):
     from maglev_ros.discrepancy.diagnose import diagnose
     from maglev_ros.discrepancy.recording import load_recording
-    passes = [load_recording(p) for p in args.passes]
+    progress.stage("load recordings", total=len(args.passes) + bool(args.ambient))
+    passes = [load_recording(p) for p in progress.steps(args.passes, str)]
     ambient = None
     if args.ambient:
         ambient = load_recording(args.ambient)
+        progress.advance(note=args.ambient)
         if ambient.kind != "ambient":
             raise UserError(f"{args.ambient}: run.kind: expected 'ambient' for --ambient, got {ambient.kind!r}")
     out = Path(args.out)
@@ -38,14 +53,10 @@ def run(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {out}: cannot create directory ({exc.strerror})") from None
-    d = diagnose(passes, ambient)
+    d = diagnose(passes, ambient, progress=progress)
     (out / "report.json").write_text(json.dumps(d.to_dict(), indent=1))
     if not args.no_html:
         from maglev_ros.discrepancy.report_html import render
+        progress.stage("write the HTML report")
         (out / "report.html").write_text(render(d))
-    rep = d.to_dict()
-    print(f"fit before {rep['fit_before']['nrmse']:.3f}, after {rep['fit_after']['nrmse']:.3f}; "
-          f"{len(rep['mismatches'])} mismatch(es); missing physics: "
-          f"{', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}")
-    print(f"wrote {out / 'report.json'}" + ("" if args.no_html else f" and {out / 'report.html'}"))
-    return 0
+    return d, out

@@ -33,6 +33,7 @@ from typing import Sequence
 import numpy as np
 
 from maglev_ros.errors import UserError
+from maglev_ros.progress import NULL, Progress
 
 from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
@@ -122,7 +123,8 @@ class Diagnoser:
         self.config = config
 
     # ------------------------------------------------------------------------------------
-    def fit(self, passes: Sequence[Recording], ambient: Recording | None = None) -> Diagnosis:
+    def fit(self, passes: Sequence[Recording], ambient: Recording | None = None,
+            progress: Progress = NULL) -> Diagnosis:
         if not passes:
             raise UserError("--pass: at least one pass recording is needed")
         for p in passes:
@@ -156,23 +158,30 @@ class Diagnoser:
             return ps, full, full[:1], (full[:1] if same_heldout else full[1:])
         # the irregularity of each pass drives the twin: reconstructed with the nominal twin for a
         # first calibration, then ONCE more with the calibrated twin (kept for every hypothesis)
+        progress.stage("calibrate the twin", total=4 if cfg.irregularity else 2)
         passes, rd_all, rd_train, rd_test = prepared(base0)
+        progress.advance(note="rail from the nominal twin")
         base = fit_base(base0, rd_train, cfg.base_max_nfev)
+        progress.advance(note="calibrated")
         if cfg.irregularity and any(p.irregularity is not None for p in passes):
             passes, rd_all, rd_train, rd_test = prepared(base.spec)
+            progress.advance(note="rail from the calibrated twin")
             base = fit_base(base.spec, rd_train, cfg.base_refit_nfev)
+            progress.advance(note="re-calibrated")
+        progress.stage("locate mismatches", total=len(rd_all) + (ambient is not None))
         rd_amb = prepare(ambient, base0) if ambient is not None else None
         # dropouts are a data fact: detected, then modelled on every recording
         drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, cfg.dropout_min_s)]
         nr_before, pc_before = fit_report(base.spec, rd_all)
         # ---- localize
-        mp_base = [model_powers(base.spec, rd) for rd in rd_all]
+        mp_base = [model_powers(base.spec, rd) for rd in progress.steps(rd_all, lambda rd: rd.rec.source)]
         maps = [residual_map(rd, mp) for rd, mp in zip(rd_all, mp_base)]
         found: list[Mismatch] = []
         for m in maps:
             found.extend(mismatches(m))
         if rd_amb is not None:
             found.extend(mismatches(residual_map(rd_amb, model_powers(base.spec, rd_amb)), max_regions=4))
+            progress.advance(note="ambient")
         found.sort(key=lambda m: -m.severity * (m.time_s[1] - m.time_s[0]))
         # band misfits of one girder sensor that persist over whole passes (too weak for any frame)
         persistent = persistent_mismatches(rd_all, mp_base)
@@ -186,11 +195,13 @@ class Diagnoser:
         physics = [h for h in hyps if h.needs_sim]
         cheap = [h for h in hyps if not h.needs_sim]
         screened = []
+        progress.stage("screen catalogue hypotheses", total=len(physics))
         for h in physics:
             try:
                 screened.append((screen(base, h, rd_train), h))
             except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
                 tried.append({"effect": h.effect, "label": h.label, "why": f"twin failed at trial value ({exc})"})
+            progress.advance(note=h.label)
         screened.sort(key=lambda t: t[0])
         # the best-screened hypotheses, and the best of every further effect (screening at a trial value
         # ranks effects with very different footprints: a bearing at 30 % of its stiffness ranked below
@@ -276,7 +287,9 @@ class Diagnoser:
 
         def null_key(h):
             return (_key(where(h, "fit")), _key(where(h)))
+        progress.stage(f"fit catalogue hypotheses ({len(cands)} of {len(hyps)})", total=len(cands) + len(drops))
         for h in cands:
+            progress.advance(0, note=h.label)
             try:
                 if h.effect == "ambient_excitation" and rd_amb is not None:
                     # the ambient recording is direct evidence of vibration without a vehicle
@@ -289,6 +302,7 @@ class Diagnoser:
                     hf = fit_hypothesis(base, h, rd_train)
             except Exception as exc:
                 tried.append({"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"})
+                progress.advance(note=h.label)
                 continue
             rd_train_h, rd_test_h = rd_train, rd_test
             dbic = None
@@ -318,6 +332,7 @@ class Diagnoser:
                 # clearly nothing: skip the held-out simulation
                 fits.append((hf, judge(held_before, held_before, dbic, h.plausible(hf.params), 0.0,
                                        cfg.acceptance), dbic))
+                progress.advance(note=h.label)
                 continue
             held_after, _ = fit_report(hf.spec, rd_test_h)
             # the held-out fit is also reported where the extension acts (its channels): judged
@@ -351,10 +366,13 @@ class Diagnoser:
                 v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, cfg.acceptance,
                           held_llr(hf.spec))
             fits.append((hf, v, dbic))
+            progress.advance(note=h.label)
         for (n, t0, t1, val) in drops:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
             local_ev[id(fits[-1][0])] = (fit_report(base.spec, rd_test, {n})[0],
                                          fit_report(fits[-1][0].spec, rd_test, {n})[0])
+            progress.advance(note=f"{n} dropout")
+        progress.stage("held-out judgement (peers, combinations)")
         # the scale-fault signature of every channel with a sensor_error fit, computed once
         recs = [({n: c.group for n, c in rd.rec.channels.items()}, rd.pm, mp, rd.masks)
                 for rd, mp in zip(rd_all, mp_base)]
@@ -469,6 +487,7 @@ class Diagnoser:
             rejected.append({"effect": "(all)", "why": "only one pass given: the held-out check used the "
                                                       "training pass itself (weaker evidence)"})
         # ---- discovery when mismatches remain unexplained
+        progress.stage("discovery")
         disc = []
         air_missing = None
         groups_of = {n: c.group for rd in rd_all for n, c in rd.rec.channels.items()}
@@ -564,6 +583,7 @@ class Diagnoser:
             else:
                 rejected += _resonator_rejections(cand, "it fits, but the stiffness loss explains the misfit better "
                                                         f"(held-out NRMSE {held_chosen:.3f})")
+        progress.stage("report")
         nr_after, pc_after = fit_report(final_spec, rd_fin)
         missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                                signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
@@ -1029,5 +1049,5 @@ def _combine(spec: ModelSpec, hf: HypFit) -> ModelSpec:
 
 
 def diagnose(passes: Sequence[Recording], ambient: Recording | None = None,
-             config: DiagnoseConfig = DiagnoseConfig()) -> Diagnosis:
-    return Diagnoser(config).fit(passes, ambient)
+             config: DiagnoseConfig = DiagnoseConfig(), progress: Progress = NULL) -> Diagnosis:
+    return Diagnoser(config).fit(passes, ambient, progress)

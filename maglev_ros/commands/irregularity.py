@@ -2,9 +2,11 @@
 
 Guideway irregularity by the inertial reference method from a pass recording: magnet
 accelerations + gaps + vehicle position (see maglev_ros.irregularity.profile). The CSV has
-columns ``position_m,irregularity_m`` with the band, filter corner, kind and warnings in ``#``
-header lines; the JSON holds the same plus the spectrum summary (Welch PSD with confidence band,
-comparison with the FRA / German reference spectra, EN 13848 D1/D2 RMS).
+columns ``position_m,irregularity_m`` with the band, filter corner (and how it was chosen), kind
+and warnings in ``#`` header lines; the JSON holds the same plus the spectrum summary (Welch PSD
+with confidence band, comparison with the FRA / German reference spectra, EN 13848 D1/D2 RMS).
+With no options the corner and the band follow the recording (pass length and speed; see
+maglev_ros.irregularity.profile) and both lines state what was achieved.
 """
 from __future__ import annotations
 
@@ -26,13 +28,17 @@ def add_arguments(p) -> None:
     p.add_argument("--out", required=True, help="output CSV (position_m,irregularity_m)")
     p.add_argument("--json", dest="json_out", default=None, help="also write a JSON summary")
     p.add_argument("--plot", default=None, help="also write a PNG: profile and PSD vs references")
-    p.add_argument("--highpass-hz", type=float, default=0.2,
-                   help="corner of the time-domain high-pass [Hz] (default 0.2)")
-    p.add_argument("--spacing-m", type=float, default=0.25, help="profile grid spacing [m]")
+    p.add_argument("--highpass-hz", type=float, default=None,
+                   help="corner of the time-domain high-pass [Hz] (default: from the recording, "
+                        "the lowest at which filter settling, 2.2/f_c s, takes at most half of the "
+                        "longest clean moving stretch, i.e. 4.4/T; not below 0.2 Hz)")
+    p.add_argument("--spacing-m", type=float, default=0.25,
+                   help="profile grid spacing [m] (default 0.25; the shortest wavelength is 4x it)")
     p.add_argument("--magnets", default=None,
                    help="comma-separated 1-based magnet numbers to use (default: all)")
-    p.add_argument("--magnet-length-m", type=float, default=3.0,
-                   help="shortest trusted wavelength from the magnet length [m] (default 3)")
+    p.add_argument("--magnet-length-m", type=float, default=0.0,
+                   help="shortest trusted wavelength from a sensor that averages over a length [m] "
+                        "(default 0: point gap sensors and accelerometers)")
     p.add_argument("--band-speed-mps", type=float, default=None,
                    help="speed that sets the longest wavelength (default: 5th percentile of speed)")
     p.add_argument("--max-wavelength-m", type=float, default=None,
@@ -107,13 +113,18 @@ def analyse(inputs: dict, args):
     return res, spec, comp, rms, notes
 
 
+def _corner_text(res) -> str:
+    c = res.corner
+    return c.describe() if c is not None else f"{res.highpass_hz:.3g} Hz"
+
+
 def header_lines(res, rms, bag) -> list[str]:
     lines = [f"# maglev-ros irregularity of {bag}",
              f"# kind: {res.kind} (loaded: includes girder deflection under the vehicle)",
              f"# valid band: {res.min_wavelength_m:.4g} m <= wavelength <= "
              f"{res.max_wavelength_m:.4g} m (half-amplitude corners of a zero-phase Butterworth "
              f"order {res.filter_order} band-pass)",
-             f"# time high-pass corner: {res.highpass_hz:g} Hz; band speed "
+             f"# time high-pass corner: {_corner_text(res)}; band speed "
              f"{res.band_speed_mps:.4g} m/s; grid spacing {res.spacing_m:g} m",
              "# magnets: " + ", ".join(f"{n} at {o:+.4g} m" for n, o in
                                        zip(res.magnet_names, res.magnet_offsets_m))]
@@ -157,7 +168,7 @@ def write_plot(path: str, res, spec, comp) -> None:
     a1.set_xlabel("position [m]")
     a1.set_ylabel("irregularity [mm]")
     a1.set_title(f"{res.kind} profile, band {res.min_wavelength_m:.3g}-"
-                 f"{res.max_wavelength_m:.3g} m, f_c {res.highpass_hz:g} Hz")
+                 f"{res.max_wavelength_m:.3g} m, f_c {res.highpass_hz:.3g} Hz")
     a1.grid(True, alpha=0.3)
     if spec is not None:
         f = spec.freq_cycles_per_m
@@ -190,7 +201,8 @@ def run(args) -> int:
         write_plot(args.plot, res, spec, comp)
     v = res.valid
     rms_all = float(np.sqrt(np.mean(res.irregularity_m[v] ** 2))) if v.any() else float("nan")
+    print(f"irregularity: valid band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m at "
+          f"band speed {res.band_speed_mps:.3g} m/s; time high-pass {_corner_text(res)}")
     print(f"irregularity: {int(v.sum())} of {v.size} points valid, rms {rms_all * 1e3:.3g} mm, "
-          f"band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m, "
           f"{len(res.warnings)} warning(s); wrote {args.out}")
     return 0

@@ -23,11 +23,22 @@ Band (choices, stated in every result):
   over the distance travelled above ``stop_speed_mps``; positions passed slower than ``v_band``
   are dropped (reported as ``slow_section``). Samples below ``stop_speed_mps`` never map to
   positions, so a stop never divides by zero.
+* The corner follows the recording unless given (``highpass_hz=None``, :func:`auto_highpass_hz`).
+  Every clean stretch loses its settling time to the filters: ``edge_s = 0.6/f_c`` of the double
+  integral at each end, and one longest wave (``trim_wavelengths * max_wavelength_m``, i.e.
+  ``1/(band_factor f_c)`` s) of the band-pass at each end, together ``2.2/f_c`` s at the defaults.
+  The corner is the lowest at which that settling takes at most ``settle_fraction`` (half) of the
+  longest clean moving stretch ``T``: ``f_c = 2.2 / (0.5 T) = 4.4 / T`` (0.35 Hz for 12.7 s,
+  0.22 Hz for 20 s), never below ``min_highpass_hz`` = 0.2 Hz (the double-integrated white noise
+  of a 0.02 m/s^2 accelerometer at 1 kHz is ~0.15 mm rms above 0.2 Hz and ~0.4 mm above 0.1 Hz,
+  growing as f_c^-1.5: the size of a good line's 1-50 m irregularity). A shorter pass thus gets a
+  higher corner, and a slower one a shorter longest wave; the result states the corner, the
+  stretch and the rule (:class:`CornerChoice`).
 * ``min_wavelength_m = max(magnet_length_m, 4 * spacing_m, 4 * v_max / fs)``. ``magnet_length_m``
-  defaults to 3.0 m: a Transrapid-type levitation magnet is about 3 m long; its pitch and the
-  distance between accelerometer and gap sensor on it make shorter wavelengths unreliable (set it
-  to 0 for collocated sensors). The 4x grid / sampling factor keeps bin averaging (boxcar) above
-  0.98 gain in the band.
+  defaults to 0: the gap sensor and the accelerometer measure at a point, so the magnet's length
+  (about 3 m) filters its force, not what its sensors see (measured on simulated point sensors:
+  docs/irregularity.md); set it for sensors that average over a length. The 4x grid / sampling factor keeps the bin average
+  (boxcar, gain ``sinc(spacing / wavelength)``) at >= 0.90 in the band.
 * Band corners are the -6 dB (half-amplitude) points of the stated zero-phase filter; a caller
   that wants to compare with a known profile applies the same filter to it (``band_filter`` in
   :meth:`IrregularityResult.to_dict`).
@@ -73,7 +84,11 @@ from maglev_ros.errors import UserError
 from maglev_ros.irregularity.integration import (
     DEFAULT_FILTER_ORDER, DataWarning, detect_dropouts, double_integrate, _runs)
 
-__all__ = ["InertialProfiler", "IncrementalProfiler", "IrregularityResult", "band_filter_sos"]
+__all__ = ["InertialProfiler", "IncrementalProfiler", "IrregularityResult", "CornerChoice",
+           "auto_highpass_hz", "band_filter_sos"]
+
+EDGE_PER_CORNER = 0.6          # edge_s * f_c: just longer than the integrator's 0.5/f_c taper
+MIN_HIGHPASS_HZ = 0.2          # noise floor of the automatic corner (module docstring)
 
 
 def _nan_list(a) -> list:
@@ -87,6 +102,56 @@ def band_filter_sos(min_wavelength_m: float, max_wavelength_m: float, spacing_m:
     (apply with ``scipy.signal.sosfiltfilt``)."""
     return signal.butter(order, [1.0 / max_wavelength_m, 1.0 / min_wavelength_m], btype="band",
                          fs=1.0 / spacing_m, output="sos")
+
+
+def settle_per_corner(band_factor: float = 2.0, trim_wavelengths: float = 1.0,
+                      edge_per_corner: float = EDGE_PER_CORNER) -> float:
+    """Settling time of one clean stretch times f_c: two integrator edges plus two band-pass trims
+    (one longest wave ``1/(band_factor f_c)`` s each per ``trim_wavelengths``)."""
+    return 2.0 * edge_per_corner + 2.0 * trim_wavelengths / band_factor
+
+
+def auto_highpass_hz(usable_s: float, band_factor: float = 2.0, trim_wavelengths: float = 1.0,
+                     edge_per_corner: float = EDGE_PER_CORNER, settle_fraction: float = 0.5,
+                     min_highpass_hz: float = MIN_HIGHPASS_HZ) -> float:
+    """Time high-pass corner for a clean moving stretch of ``usable_s`` seconds: the lowest at which
+    the filters' settling takes at most ``settle_fraction`` of it, never below ``min_highpass_hz``."""
+    if not (usable_s > 0 and math.isfinite(usable_s)):
+        raise UserError(f"usable stretch: expected > 0 s of clean moving data, got {usable_s:g} s")
+    # settling = settle_per_corner / f_c must fit in settle_fraction of the stretch
+    fc = settle_per_corner(band_factor, trim_wavelengths, edge_per_corner) / (settle_fraction * usable_s)
+    # the integrator itself needs 2 edges + 2/f_c per stretch (integration.double_integrate)
+    fc = max(fc, 1.01 * (2.0 * edge_per_corner + 2.0) / usable_s)
+    return max(fc, float(min_highpass_hz))
+
+
+@dataclass(frozen=True)
+class CornerChoice:
+    """How the time high-pass corner was set: ``rule`` "given" (by the caller), "auto"
+    (:func:`auto_highpass_hz` from the longest clean moving stretch ``usable_s``) or "floor" (a
+    stream of unknown length: the automatic corner's noise floor)."""
+    highpass_hz: float
+    rule: str
+    usable_s: float | None = None
+    settle_s: float | None = None               # filter settling per stretch at this corner
+    settle_fraction: float | None = None
+    min_highpass_hz: float | None = None
+
+    def describe(self) -> str:
+        if self.rule == "given":
+            return f"{self.highpass_hz:.3g} Hz (given)"
+        if self.rule == "floor":
+            return f"{self.highpass_hz:.3g} Hz (noise floor; stream length unknown)"
+        floor = (f", raised to the {self.min_highpass_hz:g} Hz noise floor"
+                 if self.highpass_hz <= self.min_highpass_hz * (1 + 1e-9) else "")
+        return (f"{self.highpass_hz:.3g} Hz (auto: filter settling {self.settle_s:.3g} s of the "
+                f"{self.usable_s:.3g} s clean moving stretch, at most {self.settle_fraction:.0%}"
+                f"{floor})")
+
+    def to_dict(self) -> dict:
+        return {"highpass_hz": self.highpass_hz, "rule": self.rule, "usable_s": self.usable_s,
+                "settle_s": self.settle_s, "settle_fraction": self.settle_fraction,
+                "min_highpass_hz": self.min_highpass_hz, "text": self.describe()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +174,7 @@ class IrregularityResult:
     agreement: tuple[tuple[str, str, float], ...]
     bias_mps2: tuple[float, ...]
     warnings: tuple[DataWarning, ...] = field(default_factory=tuple)
+    corner: CornerChoice | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -133,6 +199,7 @@ class IrregularityResult:
         d = {
             "kind": self.kind, "spacing_m": self.spacing_m, **self.band(),
             "band_filter": self.band_filter(),
+            "corner": (self.corner or CornerChoice(self.highpass_hz, "given")).to_dict(),
             "magnets": [{"name": n, "offset_m": o, "bias_mps2": b}
                         for n, o, b in zip(self.magnet_names, self.magnet_offsets_m,
                                            self.bias_mps2)],
@@ -177,11 +244,12 @@ class InertialProfiler:
 
     Parameters
     ----------
-    highpass_hz : corner f_c of the time-domain high-pass [Hz] (default 0.2 Hz: below that the
-        double-integrated noise of a 0.02 m/s^2 accelerometer exceeds typical irregularity).
-    spacing_m : position grid spacing [m].
+    highpass_hz : corner f_c of the time-domain high-pass [Hz]; None (default): chosen per
+        recording by :func:`auto_highpass_hz` (see the module docstring), stated in the result.
+    spacing_m : position grid spacing [m] (0.25 m, the EN 13848 sampling distance).
     magnets : 1-based magnet numbers to use (default: all).
-    magnet_length_m : shortest trusted wavelength from the magnet (see module docstring).
+    magnet_length_m : shortest trusted wavelength from a sensor that averages over a length
+        (default 0: point gap sensors and accelerometers; see module docstring).
     band_factor : ``max_wavelength_m = band_speed / (band_factor * f_c)``.
     band_speed_mps, max_wavelength_m : fix the band instead of deriving it from the speed
         (``max_wavelength_m`` sets ``band_speed = band_factor * f_c * max_wavelength_m``).
@@ -193,21 +261,26 @@ class InertialProfiler:
         ``max_wavelength_m`` (the band-pass's edge transient decays over about that length).
     blend_coverage : ramp each magnet's weight in and out where the set of magnets covering a
         point changes (see the module notes); False gives the plain mean (for comparison only).
+    settle_fraction, min_highpass_hz : the automatic corner's share of each stretch given to
+        filter settling and its noise floor (used only when ``highpass_hz`` is None).
     """
 
-    def __init__(self, highpass_hz: float = 0.2, spacing_m: float = 0.25,
-                 magnets: Sequence[int] | None = None, magnet_length_m: float = 3.0,
+    def __init__(self, highpass_hz: float | None = None, spacing_m: float = 0.25,
+                 magnets: Sequence[int] | None = None, magnet_length_m: float = 0.0,
                  band_factor: float = 2.0, band_speed_mps: float | None = None,
                  max_wavelength_m: float | None = None, min_wavelength_m: float | None = None,
                  stop_speed_mps: float = 1.0, filter_order: int = DEFAULT_FILTER_ORDER,
                  edge_s: float | None = None, speed_percentile: float = 5.0,
                  bias_sigma: float = 5.0, bias_floor_mps2: float = 2e-3,
-                 trim_wavelengths: float = 1.0, blend_coverage: bool = True):
-        if not highpass_hz > 0:
+                 trim_wavelengths: float = 1.0, blend_coverage: bool = True,
+                 settle_fraction: float = 0.5, min_highpass_hz: float = MIN_HIGHPASS_HZ):
+        if highpass_hz is not None and not highpass_hz > 0:
             raise UserError(f"highpass_hz: expected > 0 Hz, got {highpass_hz}")
         if not spacing_m > 0:
             raise UserError(f"spacing_m: expected > 0 m, got {spacing_m}")
-        self.highpass_hz = float(highpass_hz)
+        if not 0 < settle_fraction < 1:
+            raise UserError(f"settle_fraction: expected between 0 and 1, got {settle_fraction}")
+        self.highpass_hz = None if highpass_hz is None else float(highpass_hz)
         self.spacing_m = float(spacing_m)
         self.magnets = None if magnets is None else [int(m) for m in magnets]
         self.magnet_length_m = float(magnet_length_m)
@@ -217,12 +290,71 @@ class InertialProfiler:
         self.min_wavelength_m = min_wavelength_m
         self.stop_speed_mps = float(stop_speed_mps)
         self.filter_order = int(filter_order)
-        self.edge_s = (0.6 / self.highpass_hz) if edge_s is None else float(edge_s)
+        self.edge_s_given = None if edge_s is None else float(edge_s)
+        self.edge_s = (None if self.highpass_hz is None else
+                       EDGE_PER_CORNER / self.highpass_hz if edge_s is None else float(edge_s))
         self.speed_percentile = float(speed_percentile)
         self.bias_sigma = float(bias_sigma)
         self.bias_floor_mps2 = float(bias_floor_mps2)
         self.trim_wavelengths = float(trim_wavelengths)
         self.blend_coverage = bool(blend_coverage)
+        self.settle_fraction = float(settle_fraction)
+        self.min_highpass_hz = float(min_highpass_hz)
+        self.corner = None if self.highpass_hz is None else CornerChoice(self.highpass_hz, "given")
+
+    # -- the corner ------------------------------------------------------------------------
+    def corner_for(self, usable_s: float) -> CornerChoice:
+        """The automatic corner for a clean moving stretch of ``usable_s`` seconds."""
+        if self.edge_s_given is None:
+            fc = auto_highpass_hz(usable_s, self.band_factor, self.trim_wavelengths,
+                                  EDGE_PER_CORNER, self.settle_fraction, self.min_highpass_hz)
+        else:
+            # fixed edges: settling = 2 edge_s + trims/f_c must fit in the stretch's share
+            room_s = self.settle_fraction * usable_s - 2.0 * self.edge_s_given
+            if not room_s > 0:
+                raise UserError(f"edge_s: {self.edge_s_given:g} s at both ends leaves nothing of "
+                                f"the {usable_s:.3g} s clean moving stretch")
+            fc = max(2.0 * self.trim_wavelengths / self.band_factor / room_s,
+                     1.01 * 2.0 / (usable_s - 2.0 * self.edge_s_given), self.min_highpass_hz)
+        edge = EDGE_PER_CORNER / fc if self.edge_s_given is None else self.edge_s_given
+        settle = 2.0 * edge + 2.0 * self.trim_wavelengths / (self.band_factor * fc)
+        return CornerChoice(float(fc), "auto", float(usable_s), float(settle),
+                            self.settle_fraction, self.min_highpass_hz)
+
+    def with_corner(self, corner: CornerChoice) -> "InertialProfiler":
+        """A copy of this profiler with its time high-pass fixed at ``corner``."""
+        import copy
+        c = copy.copy(self)
+        c.highpass_hz = float(corner.highpass_hz)
+        c.edge_s = EDGE_PER_CORNER / c.highpass_hz if self.edge_s_given is None else self.edge_s_given
+        c.corner = corner
+        return c
+
+    def usable_s(self, accel, gap, position, magnet_offsets_m, channel_pairs=None) -> float:
+        """Longest stretch [s] over which some magnet's accel and gap are clean (no dropout) and
+        the vehicle moves faster than ``stop_speed_mps``: what the filters have to work with."""
+        specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
+        t, fs, _, v, tg, same = self._timebase(accel, gap, position)
+        moving = np.isfinite(v) & (v >= self.stop_speed_mps)
+        best = 0
+        for spec in specs:
+            a = _channel(accel, spec.accel_channel, "/testline/vehicle/accel")
+            g = self._gap_on(t, tg, same, _channel(gap, spec.gap_channel, "/testline/vehicle/gap"))
+            abad, _ = detect_dropouts(t, a, fs, spec.accel_channel)
+            gbad, _ = detect_dropouts(t, g, fs, spec.gap_channel)
+            for i0, i1 in _runs(moving & ~abad & ~gbad):
+                best = max(best, i1 - i0)
+        if best == 0:
+            raise UserError("/testline/vehicle/position: no clean stretch where the vehicle moves "
+                            f"faster than stop_speed_mps={self.stop_speed_mps:g} m/s")
+        return best / fs
+
+    def resolve(self, accel, gap, position, magnet_offsets_m, channel_pairs=None) -> "InertialProfiler":
+        """This profiler with its corner fixed for the recording (itself when the corner is given)."""
+        if self.highpass_hz is not None:
+            return self
+        return self.with_corner(self.corner_for(
+            self.usable_s(accel, gap, position, magnet_offsets_m, channel_pairs)))
 
     # -- configuration helpers -------------------------------------------------------------
     def _specs(self, accel, gap, magnet_offsets_m, channel_pairs) -> list[_MagnetSpec]:
@@ -261,12 +393,18 @@ class InertialProfiler:
             i = np.searchsorted(cum, cum[-1] * self.speed_percentile / 100.0)
             v_band = float(speed_kept[order][min(i, order.size - 1)])
         v_band = max(v_band, self.stop_speed_mps)
-        lam_max = v_band / (self.band_factor * fc)
         v_max = float(speed_kept.max()) if speed_kept.size else v_band
-        lam_min = max(self.magnet_length_m, 4 * self.spacing_m, 4 * v_max / fs_hz)
-        if self.min_wavelength_m is not None:
-            lam_min = max(lam_min, float(self.min_wavelength_m))
-        return v_band, lam_min, lam_max
+        return v_band, self.shortest_wavelength_m(v_max, fs_hz), self.longest_wavelength_m(v_band)
+
+    def longest_wavelength_m(self, band_speed_mps: float) -> float:
+        """Longest trusted wave: the time high-pass passes > 0.996 of it at ``band_factor`` 2."""
+        return band_speed_mps / (self.band_factor * self.highpass_hz)
+
+    def shortest_wavelength_m(self, max_speed_mps: float, fs_hz: float) -> float:
+        """Shortest trusted wave: 4 grid steps, 4 sample steps at the top speed, or the stated
+        sensor length / minimum when longer."""
+        lam = max(self.magnet_length_m, 4 * self.spacing_m, 4 * max_speed_mps / fs_hz)
+        return lam if self.min_wavelength_m is None else max(lam, float(self.min_wavelength_m))
 
     # -- time domain -> samples at positions -------------------------------------------------
     def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k):
@@ -345,7 +483,10 @@ class InertialProfiler:
                 deflection=None, channel_pairs=None):
         """Per-magnet position samples before binning (used by fit and the streaming class).
 
-        Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs)."""
+        Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs).
+        Needs a fixed corner (see :meth:`resolve`)."""
+        if self.highpass_hz is None:
+            raise UserError("highpass_hz: samples() needs a fixed corner (resolve() sets it)")
         specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
         t, fs, xref, v, tg, same = self._timebase(accel, gap, position)
         out, warns, biases = [], [], []
@@ -372,6 +513,9 @@ class InertialProfiler:
         (up positive): a callable ``f(time_s, x_m, magnet) -> array`` or an array
         (n_accel_samples, n_magnets); when given, the result is the unloaded profile.
         """
+        if self.highpass_hz is None:
+            return self.resolve(accel, gap, position, magnet_offsets_m, channel_pairs).fit(
+                accel, gap, position, magnet_offsets_m, nominal_gap_m, deflection, channel_pairs)
         specs, samp, warns, biases, fs, t = self.samples(
             accel, gap, position, magnet_offsets_m, nominal_gap_m, deflection, channel_pairs)
         v = samp[0][2]
@@ -531,7 +675,7 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
         fc = cfg.highpass_hz
         raise UserError("vehicle recording: no valid magnet samples left (dropouts, stops or "
                         f"clean stretches shorter than the ~{2 * cfg.edge_s + 2 / fc:.0f} s that a "
-                        f"{fc:g} Hz high-pass needs; a higher --highpass-hz shortens it)")
+                        f"{fc:.3g} Hz high-pass needs; a higher --highpass-hz shortens it)")
     pos = (acc.j0 + np.arange(acc.n)) * dx
     warns = list(warns)
     if lam_max <= lam_min * 1.5:
@@ -584,7 +728,8 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
         magnet_offsets_m=tuple(s.offset_m for s in specs), spacing_m=dx,
         min_wavelength_m=float(lam_min), max_wavelength_m=float(lam_max),
         highpass_hz=cfg.highpass_hz, filter_order=cfg.filter_order, band_speed_mps=float(v_band),
-        kind=kind, agreement=tuple(agree), bias_mps2=tuple(biases), warnings=tuple(uniq))
+        kind=kind, agreement=tuple(agree), bias_mps2=tuple(biases), warnings=tuple(uniq),
+        corner=cfg.corner)
 
 
 class _Stream:
@@ -638,7 +783,11 @@ class IncrementalProfiler:
     growing profile with :meth:`result`.
 
     The band must be fixed up front (``max_wavelength_m``, or ``band_speed_mps`` with default
-    4.17 m/s = 15 km/h). Signals are processed in overlapping time windows: each run covers the
+    4.17 m/s = 15 km/h), and so must the corner: ``highpass_hz``, or, when None, the batch rule
+    (:func:`auto_highpass_hz`) for ``expected_pass_s`` seconds of clean moving data (with the same
+    corner and band speed the batch fit gives the same profile), or, without it, its noise floor
+    ``min_highpass_hz`` (an open-ended stream). Signals are processed in overlapping time windows:
+    each run covers the
     buffer from ``margin_s`` before the last committed time to the newest sample present on all
     three topics, and commits samples up to ``margin_s`` before its end
     (``margin_s = edge_s + 2 / f_c``), so every committed sample had at least ``margin_s`` of
@@ -650,11 +799,17 @@ class IncrementalProfiler:
     def __init__(self, magnet_offsets_m: Sequence[float], nominal_gap_m: float = 0.010,
                  channel_pairs: dict | None = None, hop_s: float | None = None,
                  max_profile_m: float | None = None, band_speed_mps: float | None = None,
-                 max_wavelength_m: float | None = None, **profiler_kwargs):
+                 max_wavelength_m: float | None = None, expected_pass_s: float | None = None,
+                 **profiler_kwargs):
         if band_speed_mps is None and max_wavelength_m is None:
             band_speed_mps = 15.0 / 3.6
-        self.cfg = InertialProfiler(band_speed_mps=band_speed_mps,
-                                    max_wavelength_m=max_wavelength_m, **profiler_kwargs)
+        cfg = InertialProfiler(band_speed_mps=band_speed_mps,
+                               max_wavelength_m=max_wavelength_m, **profiler_kwargs)
+        if cfg.highpass_hz is None:
+            cfg = cfg.with_corner(
+                cfg.corner_for(float(expected_pass_s)) if expected_pass_s is not None
+                else CornerChoice(cfg.min_highpass_hz, "floor", min_highpass_hz=cfg.min_highpass_hz))
+        self.cfg = cfg
         self.offsets = [float(o) for o in magnet_offsets_m]
         self.g0 = float(nominal_gap_m)
         self.pairs = channel_pairs
@@ -754,10 +909,8 @@ class IncrementalProfiler:
         v_band = self._v_band()
         c = self.cfg
         fs = self.streams["accel"].fs or 1000.0
-        lam_max = v_band / (c.band_factor * c.highpass_hz)
-        lam_min = max(c.magnet_length_m, 4 * c.spacing_m, 4 * self.v_max / fs)
-        if c.min_wavelength_m is not None:
-            lam_min = max(lam_min, float(c.min_wavelength_m))
+        lam_max = c.longest_wavelength_m(v_band)
+        lam_min = c.shortest_wavelength_m(self.v_max, fs)
         warns = list(self.warnings)
         if self.slow_s > 0:
             warns.append(DataWarning(

@@ -235,7 +235,8 @@ class PlainProgress(_Renderer):
 
     def _close(self) -> None:
         with self.lock:
-            self._emit("stopped" if self.failed else "done", self.clock())
+            if not self.failed:          # on an error the command's own one-line message says it
+                self._emit("done", self.clock())
 
 
 class BarProgress(_Renderer):

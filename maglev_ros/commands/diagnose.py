@@ -27,6 +27,9 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from maglev_ros.progress import for_cli
+    for b in [*args.passes, *([args.ambient] if args.ambient else [])]:
+        if not Path(b).exists():     # a one-line error before any progress line
+            raise UserError(f"{b}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
     with for_cli(args.quiet, "diagnose") as progress:
         d, out = _diagnose(args, progress)
     rep = d.to_dict()

@@ -26,12 +26,15 @@ def add_arguments(p) -> None:
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing bag")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (stage, count, ETA)")
 
 
 def run(args) -> int:
+    from maglev_ros.progress import for_cli
     from maglev_ros.twin.simulate import simulate
-    res = simulate(args.scenario, args.out, sets=args.sets, seed=args.seed, overwrite=args.overwrite,
-                   storage=args.storage)
+    with for_cli(args.quiet, "simulate") as progress:
+        res = simulate(args.scenario, args.out, sets=args.sets, seed=args.seed, overwrite=args.overwrite,
+                       storage=args.storage, progress=progress)
     if args.json:
         print(json.dumps(res.to_dict(), indent=1))
         return 0

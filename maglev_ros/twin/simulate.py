@@ -57,6 +57,7 @@ from scipy import signal
 from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
                                  TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, CONTRACT_SCHEMA)
 from maglev_ros.errors import UserError
+from maglev_ros.progress import NULL, Progress
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config
 from maglev_ros.twin.guideway import Guideway, ModalBasis
 from maglev_ros.twin.sensors import AntiAlias, InstrumentChain, NoiseSpec, anti_alias_delay_s
@@ -693,8 +694,9 @@ def _lcm(values) -> int:
     return out
 
 
-def run_scenario(sc: Scenario) -> SimulatedRecord:
+def run_scenario(sc: Scenario, progress: Progress = NULL) -> SimulatedRecord:
     """Simulate a scenario in memory (see module docstring)."""
+    progress.stage("line and guideway modes")
     cfg = sc.truth_config()
     sc.nominal_config()                         # validate the nominal design too
     spans = sc.truth_span_specs(cfg)
@@ -741,6 +743,7 @@ def run_scenario(sc: Scenario) -> SimulatedRecord:
         duration = float(t_grid[idx[0]]) + float(sc.raw["free_decay_s"])
         x_end = x0 + float(_distance(speed, np.array([duration]))[0])
         irr, irr_used = _irregularity(sc, x0 + float(offs.min()) - 5.0, x_end + float(offs.max()) + 5.0, seq_irr)
+        progress.stage(f"coupled vehicle/guideway simulation ({duration:.1f} s)")
         res = simulate_pass(cfg, spans, speed, irr, dict(zip(sec_names, sec_x)), duration_s=duration,
                             fs_out_hz=fs_int, start_position_m=x0, method=sc.raw["method"])
         truth["irregularity"] = irr_used
@@ -751,6 +754,7 @@ def run_scenario(sc: Scenario) -> SimulatedRecord:
         ctx = {"modal": modal, "sensor_x_m": sec_x, "fs_internal_hz": fs_int, "n_internal": n_int,
                "guideway_disp_m": res.guideway_disp_m.copy(), "guideway_accel_mps2": res.guideway_accel_mps2.copy()}
         eff_seqs = seq_eff.spawn(max(1, len(sc.raw["effects"])))
+        progress.stage("effects and instrument chains")
         for e, s in zip(sc.raw["effects"], eff_seqs):
             ctx["rng"] = np.random.default_rng(s)
             truth["effects"].append(EFFECTS[e["name"]].apply(ctx, e))
@@ -809,10 +813,12 @@ def run_scenario(sc: Scenario) -> SimulatedRecord:
         n_int = n_out * D
         col = [list(secs).index(sec_of[c]) for c in accel_ch]
         outs = []
+        progress.stage(f"ambient guideway response ({n_int / fs_int:.0f} s, modal superposition)", total=n_int)
         for _d, a in ambient_modal_response(modal, sec_x, fs_int, n_int, _num(exc["force_rms_n"], "excitation.force_rms_n", 0.0),
                                             exc["band_hz"], int(exc["points_per_span"]), np.random.default_rng(seq_exc),
                                             warmup_samples=int(round(float(sc.raw["warmup_s"]) * fs_int))):
             outs.append(ch.process(a[:, col]))
+            progress.advance(a.shape[0])
         y = np.concatenate(outs)
         streams[TOPIC_GUIDEWAY_ACCEL] = {"channels": accel_ch, "units": ["m/s^2"] * len(accel_ch),
                                          "rate_hz": ch.fs_out_hz, "first_index": 1, "data": y,
@@ -871,13 +877,15 @@ def write_record(rec: SimulatedRecord, out: str | Path, *, start_stamp_ns: int, 
 
 
 def simulate(scenario: Scenario | str | Path | Mapping, out: str | Path, *, sets: Sequence[str] = (),
-             seed: int | None = None, overwrite: bool = False, storage: str = "mcap") -> SimulationResult:
+             seed: int | None = None, overwrite: bool = False, storage: str = "mcap",
+             progress: Progress = NULL) -> SimulationResult:
     """Scenario -> contract bag at ``out`` + ``<out>.truth.json`` (+ ``<out>.irregularity.csv``)."""
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, sets, seed)
     out = Path(str(out).rstrip("/"))
     if out.exists() and not overwrite:
         raise UserError(f"{out}: already exists; refusing to overwrite (pass --overwrite)")
-    rec = run_scenario(sc)
+    rec = run_scenario(sc, progress)
+    progress.stage("write the bag")
     counts = write_record(rec, out, start_stamp_ns=int(sc.raw["start_stamp_ns"]),
                           block_s=float(sc.raw["block_s"]), overwrite=overwrite, storage=storage)
     tj, ic = truth_paths(out)

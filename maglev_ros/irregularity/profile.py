@@ -20,8 +20,11 @@ Band (choices, stated in every result):
   filter's gain is > 0.996 wherever the spatial filter's gain exceeds 0.004 if
   ``max_wavelength_m = v_band / (2 f_c)`` (``band_factor = 2``): the result is then one stated
   band everywhere. ``v_band`` is ``band_speed_mps`` or, by default, the 5th percentile of speed
-  over the distance travelled above ``stop_speed_mps``; positions passed slower than ``v_band``
-  are dropped (reported as ``slow_section``). Samples below ``stop_speed_mps`` never map to
+  over the distance travelled above ``stop_speed_mps``, judged on the speed averaged over
+  ``1/f_c`` (:meth:`InertialProfiler.band_speed_series`: the filter responds to that, not to the
+  speed channel's noise); positions passed slower than ``0.89 v_band`` (where the time filter
+  still passes 99 % of the longest wave, :meth:`InertialProfiler.slow_speed_mps`) are dropped
+  (reported as ``slow_section``). Samples below ``stop_speed_mps`` never map to
   positions, so a stop never divides by zero.
 * The corner follows the recording unless given (``highpass_hz=None``, :func:`auto_highpass_hz`).
   Every clean stretch loses its settling time to the filters: ``edge_s = 0.6/f_c`` of the double
@@ -396,6 +399,11 @@ class InertialProfiler:
         v_max = float(speed_kept.max()) if speed_kept.size else v_band
         return v_band, self.shortest_wavelength_m(v_max, fs_hz), self.longest_wavelength_m(v_band)
 
+    def slow_speed_mps(self, band_speed_mps: float) -> float:
+        """Slowest speed whose samples are kept: there the time high-pass still passes 99 % of the
+        longest stated wave (0.89 x the band speed at band_factor 2, order 4)."""
+        return band_speed_mps * min(1.0, 99.0 ** (1.0 / (2 * self.filter_order)) / self.band_factor)
+
     def longest_wavelength_m(self, band_speed_mps: float) -> float:
         """Longest trusted wave: the time high-pass passes > 0.996 of it at ``band_factor`` 2."""
         return band_speed_mps / (self.band_factor * self.highpass_hz)
@@ -479,16 +487,36 @@ class InertialProfiler:
                             f"got {w.shape}")
         return w
 
+    def band_speed_series(self, speed_mps: np.ndarray, fs_hz: float) -> np.ndarray:
+        """Speed averaged over 1/f_c (centred): the high-pass acts on the mean speed over its own
+        time scale, not on the speed channel's noise, so noise must not drop samples as slow.
+        Below ``stop_speed_mps`` the raw speed stays, so a stop never maps."""
+        v = np.asarray(speed_mps, float)
+        n = max(1, int(round(fs_hz / self.highpass_hz)))
+        if n <= 1 or v.size < 3:
+            return v
+        ok = np.isfinite(v)
+        csum = np.concatenate([[0.0], np.cumsum(np.where(ok, v, 0.0))])
+        ccnt = np.concatenate([[0], np.cumsum(ok)])
+        i = np.arange(v.size)
+        lo, hi = np.clip(i - n // 2, 0, v.size), np.clip(i + n - n // 2, 0, v.size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vs = (csum[hi] - csum[lo]) / (ccnt[hi] - ccnt[lo])
+        vs = np.where(ok, vs, np.nan)
+        return np.where(v < self.stop_speed_mps, v, vs)
+
     def samples(self, accel, gap, position, magnet_offsets_m, nominal_gap_m,
                 deflection=None, channel_pairs=None):
         """Per-magnet position samples before binning (used by fit and the streaming class).
 
-        Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs).
-        Needs a fixed corner (see :meth:`resolve`)."""
+        Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs); the speed
+        is the one the band is judged by (:meth:`band_speed_series`). Needs a fixed corner (see
+        :meth:`resolve`)."""
         if self.highpass_hz is None:
             raise UserError("highpass_hz: samples() needs a fixed corner (resolve() sets it)")
         specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
-        t, fs, xref, v, tg, same = self._timebase(accel, gap, position)
+        t, fs, xref, v_raw, tg, same = self._timebase(accel, gap, position)
+        v = self.band_speed_series(v_raw, fs)
         out, warns, biases = [], [], []
         for k, spec in enumerate(specs):
             a = _channel(accel, spec.accel_channel, "/testline/vehicle/accel")
@@ -524,9 +552,9 @@ class InertialProfiler:
         v_band, lam_min, lam_max = self._band(v[moving], v[moving] * dt, fs)
         acc = _BinAccumulator(self.spacing_m)
         for k, (x, r, vv) in enumerate(samp):
-            keep = np.isfinite(r) & (vv >= v_band)
+            keep = np.isfinite(r) & (vv >= self.slow_speed_mps(v_band))
             acc.add(k, x[keep], r[keep])
-        warns += _slow_warnings(t, v, v_band, self.stop_speed_mps, dt)
+        warns += _slow_warnings(t, v, self.slow_speed_mps(v_band), self.stop_speed_mps, dt)
         nopos = ~np.isfinite(v)
         if nopos.any():
             warns.append(DataWarning(
@@ -540,8 +568,8 @@ class InertialProfiler:
                        sample_step_m=step_m)
 
 
-def _slow_warnings(t, v, v_band, stop, dt) -> list[DataWarning]:
-    slow = v < v_band
+def _slow_warnings(t, v, slow_mps, stop, dt) -> list[DataWarning]:
+    slow = v < slow_mps
     if not slow.any():
         return []
     out = []
@@ -551,7 +579,7 @@ def _slow_warnings(t, v, v_band, stop, dt) -> list[DataWarning]:
         dist = float(np.sum(v[i0:i1]) * dt)
         out.append(DataWarning(
             "slow_section", "/testline/vehicle/position",
-            f"speed below band speed {v_band:.3g} m/s for {(i1 - i0) * dt:.3g} s "
+            f"speed below {slow_mps:.3g} m/s (the band's slowest) for {(i1 - i0) * dt:.3g} s "
             f"({dist:.3g} m travelled, stops below {stop:g} m/s); those positions are dropped",
             float(t[i0]), float(t[i1 - 1]), dist))
     return out
@@ -871,7 +899,7 @@ class IncrementalProfiler:
         v = samp[0][2]
         v_band = self._v_band()
         for k, (x, r, vv) in enumerate(samp):
-            keep = win & np.isfinite(r) & (vv >= v_band)
+            keep = win & np.isfinite(r) & (vv >= self.cfg.slow_speed_mps(v_band))
             acc.add(k, x[keep], r[keep])
             if not final:
                 self.biases.setdefault(k, []).append(biases[k])
@@ -879,7 +907,7 @@ class IncrementalProfiler:
             mv = win & np.isfinite(v)
             if mv.any():
                 self.v_max = max(self.v_max, float(v[mv].max()))
-            slow = mv & (v < v_band)
+            slow = mv & (v < self.cfg.slow_speed_mps(v_band))
             self.slow_s += slow.sum() / fs
             self.slow_m += float(v[slow].sum() / fs)
             for w in warns:
@@ -915,7 +943,8 @@ class IncrementalProfiler:
         if self.slow_s > 0:
             warns.append(DataWarning(
                 "slow_section", "/testline/vehicle/position",
-                f"speed below band speed {v_band:.3g} m/s for {self.slow_s:.3g} s "
+                f"speed below {c.slow_speed_mps(v_band):.3g} m/s (the band's slowest) for "
+                f"{self.slow_s:.3g} s "
                 f"({self.slow_m:.3g} m travelled); those positions are dropped",
                 value=self.slow_m))
         biases = [float(np.mean(self.biases.get(k, [0.0]))) for k in range(len(self.specs))]

@@ -18,9 +18,9 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    the shortest wavelength is set by sampling and grid only:
    ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)`` (default spacing 0.02 m; override
    with ``min_wavelength_m``). Because the reconstruction uses the same point-sensor convention
-   as the twin, the result is the *effective* irregularity the twin needs, not a claim about the
-   rail geometry below a real magnet's length (use :class:`InertialProfiler` with its default
-   ``magnet_length_m`` for geometry). The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
+   as the twin, the result is the *effective* irregularity the twin needs (as is the geometry
+   product of :class:`InertialProfiler`, also point sensors by default, on its coarser grid).
+   The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
    from the time high-pass (default ``highpass_hz`` 0.8 Hz: the double-integrated noise of a
    0.02 m/s^2 accelerometer stays below ~10 um there; waves that long are followed by the
    levitation control and barely accelerate the magnets -- the twin sees them as absent).

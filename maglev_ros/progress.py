@@ -168,26 +168,42 @@ class _Renderer(Progress):
 
 class PlainProgress(_Renderer):
     """One line per event, for logs and pipes: every stage start and note, counts at most once per
-    ``min_interval_s``, and a line after ``heartbeat_s`` without any (the work is alive)."""
+    ``min_interval_s``, and a line after ``heartbeat_s`` without any (the work is alive). Lines of
+    the first ``start_delay_s`` are held back and dropped if the command fails by then, so a bad
+    input still gives a one-line error."""
 
     def __init__(self, label: str, stream: TextIO | None = None, *, min_interval_s: float = 3.0,
-                 heartbeat_s: float = 5.0, clock=time.monotonic, ticker: bool = True):
+                 heartbeat_s: float = 5.0, start_delay_s: float = 2.0, clock=time.monotonic, ticker: bool = True):
         super().__init__(label, stream, clock)
         self.min_interval_s = float(min_interval_s)
         self.heartbeat_s = float(heartbeat_s)
+        self.start_delay_s = float(start_delay_s)
         self.last_line_s = self.t0_s
-        self.shown_count = 0
+        self._held: list[str] | None = []       # None once the start delay is over
         if ticker:
             self._start_ticker()
 
-    def _emit(self, text: str, now_s: float) -> None:
-        line = f"[{format_s(now_s - self.t0_s):>6s}] {self.label}: {text}"
+    def _write(self, lines: list[str]) -> None:
         try:
-            self.stream.write(line + "\n")
+            self.stream.write("".join(ln + "\n" for ln in lines))
             self.stream.flush()
         except (OSError, ValueError):          # closed pipe or stream: progress is not worth a crash
             pass
+
+    def _release(self, now_s: float) -> None:
+        if self._held is not None and now_s - self.t0_s >= self.start_delay_s:
+            held, self._held = self._held, None
+            if held:
+                self._write(held)
+
+    def _emit(self, text: str, now_s: float) -> None:
+        line = f"[{format_s(now_s - self.t0_s):>6s}] {self.label}: {text}"
         self.last_line_s = now_s
+        self._release(now_s)
+        if self._held is not None:
+            self._held.append(line)
+        else:
+            self._write([line])
 
     def _count_text(self, now_s: float) -> str:
         parts = [self.stage_name]
@@ -207,7 +223,6 @@ class PlainProgress(_Renderer):
             now = self.clock()
             self.stage_name, self.total, self.count, self.last_note = name, total, 0, ""
             self.stage_t0_s = now
-            self.shown_count = 0
             self._emit(name + (f" (0/{total})" if total else ""), now)
 
     def advance(self, n: int = 1, note: str = "") -> None:
@@ -217,7 +232,6 @@ class PlainProgress(_Renderer):
             if note:
                 self.last_note = note
             if now - self.last_line_s >= self.min_interval_s:
-                self.shown_count = self.count
                 self._emit(self._count_text(now), now)
 
     def note(self, text: str) -> None:
@@ -226,43 +240,72 @@ class PlainProgress(_Renderer):
 
     def tick(self) -> None:
         with self.lock:
-            if self.closed or not self.innermost():
+            if self.closed:
                 return
             now = self.clock()
-            if now - self.last_line_s >= self.heartbeat_s:
-                self.shown_count = self.count
+            self._release(now)
+            if self.innermost() and now - self.last_line_s >= self.heartbeat_s:
                 self._emit(self._count_text(now) + ("" if self.last_note else " - working"), now)
 
     def _close(self) -> None:
         with self.lock:
-            if not self.failed:          # on an error the command's own one-line message says it
-                self._emit("done", self.clock())
+            if self.failed:              # on an error the command's own one-line message says it
+                if self._held is not None:
+                    self._held = []
+                return
+            self.start_delay_s = 0.0
+            self._emit("done", self.clock())
 
 
 class BarProgress(_Renderer):
     """A tqdm bar on a terminal: stage as its description, count/total, elapsed and ETA; notes are
-    written above it. Refreshed every second so the elapsed time moves during a long step."""
+    written above it. Refreshed every second so the elapsed time moves during a long step. The bar
+    appears after ``start_delay_s`` (a command failing on a bad input shows only its error)."""
 
-    def __init__(self, label: str, stream: TextIO | None = None, clock=time.monotonic):
+    _known_format = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}]{postfix}"
+    _unknown_format = "{desc}: {n_fmt} [{elapsed}]{postfix}"
+
+    def __init__(self, label: str, stream: TextIO | None = None, *, start_delay_s: float = 2.0,
+                 clock=time.monotonic, ticker: bool = True):
         from tqdm import tqdm
         super().__init__(label, stream, clock)
         self._tqdm = tqdm
-        # nested renderers (the demo's steps) take the lines below their parent and vanish when done
-        self._known_format = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}]{postfix}"
-        self._unknown_format = "{desc}: {n_fmt} [{elapsed}]{postfix}"
-        self.bar = tqdm(total=None, desc=label, file=self.stream, position=self.depth, leave=self.depth == 0,
-                        dynamic_ncols=True, mininterval=0.5, bar_format=self._unknown_format)
-        # the command's own lines on the same terminal are written above the bar, not through it
+        self.start_delay_s = float(start_delay_s)
+        self.bar = None
+        self._held: list[str] = []        # notes before the bar appears
         self._stdout = None
+        if ticker:
+            self._start_ticker()
+
+    def _show(self) -> bool:
+        """Create the bar once the start delay is over; False before."""
+        if self.bar is not None:
+            return True
+        if self.clock() - self.t0_s < self.start_delay_s:
+            return False
+        tqdm = self._tqdm
+        for text in self._held:
+            tqdm.write(text, file=self.stream)
+        self._held = []
+        # nested renderers (the demo's steps) take the lines below their parent and vanish when done
+        self.bar = tqdm(total=self.total, initial=self.count, file=self.stream, position=self.depth,
+                        leave=self.depth == 0, dynamic_ncols=True, mininterval=0.5,
+                        desc=f"{self.label}: {self.stage_name}" if self.stage_name else self.label,
+                        bar_format=self._known_format if self.total else self._unknown_format)
+        if self.last_note:
+            self.bar.set_postfix_str(self.last_note)
+        # the command's own lines on the same terminal are written above the bar, not through it
         if self.depth == 0 and sys.stdout is not self.stream and _is_terminal(sys.stdout):
             self._stdout = sys.stdout
             sys.stdout = _AboveBars(sys.stdout, self.stream, tqdm)
-        self._start_ticker()
+        return True
 
     def stage(self, name: str, total: int | None = None) -> None:
         with self.lock:
             self.stage_name, self.total, self.count, self.last_note = name, total, 0, ""
             self.stage_t0_s = self.clock()
+            if not self._show():
+                return
             self.bar.bar_format = self._known_format if total else self._unknown_format
             self.bar.reset()
             self.bar.total = total         # reset(total=None) would keep the previous stage's total
@@ -275,21 +318,31 @@ class BarProgress(_Renderer):
             self.count += int(n)
             if note:
                 self.last_note = note
+            if not self._show():
+                return
+            if note:
                 self.bar.set_postfix_str(note, refresh=False)
             self.bar.update(int(n))
 
     def note(self, text: str) -> None:
         with self.lock:
-            self._tqdm.write(text, file=self.stream)
+            if self._show():
+                self._tqdm.write(text, file=self.stream)
+            else:
+                self._held.append(text)
 
     def tick(self) -> None:
         with self.lock:
-            if not self.closed:
+            if not self.closed and self._show():
                 self.bar.refresh()
 
     def _close(self) -> None:
         with self.lock:
-            self.bar.close()
+            if self.bar is not None:
+                self.bar.close()
+            elif not self.failed:
+                for text in self._held:
+                    self._tqdm.write(text, file=self.stream)
             if self._stdout is not None and isinstance(sys.stdout, _AboveBars):
                 sys.stdout = sys.stdout.restore()
 
@@ -330,15 +383,15 @@ def _is_terminal(stream: TextIO) -> bool:
         return False
 
 
-def for_cli(quiet: bool, label: str, stream: TextIO | None = None) -> Progress:
+def for_cli(quiet: bool, label: str, stream: TextIO | None = None, **options) -> Progress:
     """The renderer for a command: :data:`NULL` when ``quiet``, a bar when ``stream`` (default stderr)
-    is a terminal, throttled plain lines otherwise."""
+    is a terminal, throttled plain lines otherwise (``options``: the renderer's keyword arguments)."""
     if quiet:
         return NULL
     stream = stream if stream is not None else sys.stderr
     if _is_terminal(stream):
         try:
-            return BarProgress(label, stream)
+            return BarProgress(label, stream, **{k: v for k, v in options.items() if k == "start_delay_s"})
         except ImportError:          # tqdm missing (a colcon install without it): plain lines
             pass
-    return PlainProgress(label, stream)
+    return PlainProgress(label, stream, **options)

@@ -22,7 +22,7 @@ class FakeClock:
 
 def _plain(clock, **kw):
     out = io.StringIO()
-    return PlainProgress("job", out, clock=clock, ticker=False, **kw), out
+    return PlainProgress("job", out, clock=clock, ticker=False, **{"start_delay_s": 0.0} | kw), out
 
 
 def test_plain_lines_are_throttled_but_stages_and_notes_always_show():
@@ -83,6 +83,24 @@ def test_only_the_innermost_renderer_beats():
         outer.done()
 
 
+def test_lines_of_a_quick_failure_are_dropped_and_held_lines_keep_their_time():
+    clock = FakeClock()
+    p, out = _plain(clock, start_delay_s=2.0)
+    with pytest.raises(RuntimeError):
+        with p:
+            p.stage("load recordings", total=1)
+            clock.now_s += 0.5
+            raise RuntimeError("bad input")
+    assert out.getvalue() == ""
+    p, out = _plain(clock, start_delay_s=2.0)
+    with p:
+        p.stage("load recordings", total=1)
+        clock.now_s += 2.5
+        p.tick()
+        assert out.getvalue().splitlines() == ["[    0s] job: load recordings (0/1)"]
+    assert out.getvalue().splitlines()[-1] == "[    2s] job: done"
+
+
 def test_renderer_choice():
     assert for_cli(True, "x") is NULL
 
@@ -91,7 +109,7 @@ def test_renderer_choice():
             return True
     pipe, tty = io.StringIO(), Tty()
     p = for_cli(False, "x", pipe)
-    q = for_cli(False, "x", tty)
+    q = for_cli(False, "x", tty, start_delay_s=0.0)
     try:
         assert isinstance(p, PlainProgress)
         assert isinstance(q, BarProgress)

@@ -37,7 +37,8 @@ def add_arguments(p) -> None:
     p.add_argument("--max-window-s", type=float, default=None,
                    help="use at most this many seconds of each pass for the magnet layer (default: all)")
     p.add_argument("--seed", type=int, default=0, help="seed of sampling and swarms (default 0)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress on stderr (stage, count, ETA) and no summary table on stdout")
 
 
 def _write_atomic(path: Path, text: str) -> None:
@@ -50,6 +51,7 @@ def _write_atomic(path: Path, text: str) -> None:
 def run(args) -> int:
     from maglev_ros.updating.guideway_layer import GuidewayLayer
     from maglev_ros.updating.magnet_layer import MagnetLayer
+    from maglev_ros.progress import for_cli
     from maglev_ros.updating.pipeline import update_from_bags
 
     for b in [args.ambient, *args.passes]:
@@ -71,14 +73,19 @@ def run(args) -> int:
     for path, what in ((out.parent, "--out"), (Path(args.details).parent if args.details else None, "--details")):
         if path is not None and str(path) and not path.is_dir():
             raise UserError(f"{what}: directory {path} does not exist")
-    log = None if args.quiet else (lambda s: print(s, flush=True))
-    up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
-                          guideway_layer=GuidewayLayer(seed=args.seed, **sw),
-                          magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
-                                                   seed=args.seed, **sw), log=log)
-    _write_atomic(out, json.dumps(up.document, indent=1))
+    with for_cli(args.quiet, "update") as progress:
+        # the pipeline's messages go to stderr with the progress: stdout stays the result
+        up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
+                              guideway_layer=GuidewayLayer(seed=args.seed, **sw),
+                              magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
+                                                       seed=args.seed, **sw), progress=progress)
+        _write_atomic(out, json.dumps(up.document, indent=1))
+        if args.plot:
+            from maglev_ros.updating.plot import save_update_plots
+            progress.stage("plots")
+            plots = save_update_plots(up, args.plot)
     doc = up.document
-    if log:
+    if not args.quiet:
         fm, fn, fu = (doc["frequencies_hz"][k] for k in ("measured", "nominal", "updated"))
         print(f"{'mode':>4s} {'meas Hz':>9s} {'nominal':>9s} {'updated':>9s}")
         for i, (a, b, c) in enumerate(zip(fm, fn, fu)):
@@ -94,9 +101,7 @@ def run(args) -> int:
         det = {"document": doc, "guideway": up.guideway.to_dict(),
                "magnet": None if up.magnet is None else up.magnet.to_dict(), "provenance": up.provenance}
         Path(args.details).write_text(json.dumps(det, indent=1, default=float))
-    if args.plot:
-        from maglev_ros.updating.plot import save_update_plots
-        for p in save_update_plots(up, args.plot):
-            if log:
-                print(f"wrote {p}")
+    if args.plot and not args.quiet:
+        for p in plots:
+            print(f"wrote {p}")
     return 0

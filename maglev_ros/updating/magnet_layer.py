@@ -74,6 +74,7 @@ from scipy import signal
 from scipy.optimize import least_squares
 
 from maglev_ros.errors import UserError
+from maglev_ros.progress import NULL, Progress
 from maglev_ros.twin.design import TwinConfig, with_levitation
 from maglev_ros.updating.grp import grey_relational_projection
 from maglev_ros.updating.identifiability import COMBINATION_MAX_REL_STD, Combination, Identifiability, analyse
@@ -451,7 +452,7 @@ class MagnetLayer:
         self.model_error, self.n_bands, self.n_surrogates = bool(model_error), int(n_bands), int(n_surrogates)
         self.profile_amplitude_rel_std, self.timing_std_s = float(profile_amplitude_rel_std), float(timing_std_s)
 
-    def fit(self, config: TwinConfig, line, passes: Sequence[PassEvidence]) -> MagnetUpdate:
+    def fit(self, config: TwinConfig, line, passes: Sequence[PassEvidence], progress: Progress = NULL) -> MagnetUpdate:
         t_start = time.perf_counter()
         if not passes:
             raise UserError("magnet layer: expected at least one pass with magnet accelerations")
@@ -470,7 +471,7 @@ class MagnetLayer:
         def full_theta(theta):
             key = np.round(np.asarray(theta, float), 12).tobytes()
             if key not in full_cache:
-                full_cache[key] = [m.predict_full(space.from_theta(theta)) for m in models]
+                full_cache[key] = [m.predict_full(space.from_theta(theta)) for m in progress.steps(models)]
             return full_cache[key]
 
         def objectives(values):
@@ -487,6 +488,8 @@ class MagnetLayer:
                 cache[key] = np.concatenate([F[m.ev.compare] for F, m in zip(full_theta(theta), models)])
             return cache[key]
 
+        progress.stage("magnet layer: coupled simulations for the surrogate",
+                       total=len(models) * (1 + (self.n_samples if self.use_surrogate else 0)))
         nominal_pred = pred_theta(np.zeros(space.dim))
         if self.use_surrogate:
             from maglev_ros.updating.surrogate import train_and_score
@@ -494,6 +497,7 @@ class MagnetLayer:
             Xs = np.array([space.from_unit(u) for u in U])
             Y = np.array([[nrmse(p, meas), 1.0 - corr(p, meas)] for p in (pred_theta(space.to_theta(x)) for x in Xs)])
             Y = np.maximum(Y, 1e-9)
+            progress.stage("magnet layer: surrogate training")
             kw = dict(hidden=16, log_outputs=True) | self.surrogate_kwargs
             sur, sc = train_and_score(Xs, Y, seed=self.seed, **kw)
             surrogate_score = {"n_samples": self.n_samples, "outputs": "nrmse, 1-corr", **sc.to_dict()}
@@ -506,11 +510,13 @@ class MagnetLayer:
 
             def batch(theta):
                 return np.array([objectives(v) for v in space.from_theta(theta)])
+        progress.stage("magnet layer: swarm (MOPSO)")
         pareto = MOPSO(**self.mopso).minimize(batch, lo, hi, x0=np.vstack([np.zeros(space.dim), best_sample]))
         grp = grey_relational_projection(pareto.f)
         theta0 = np.clip(pareto.x[grp.index], lo, hi)
 
         # ---- direct polish: Levenberg-Marquardt-like trust region on the acceleration series ----
+        progress.stage("magnet layer: polish on the coupled model (simulations)")
         h = self.jac_step
 
         def residual(theta):
@@ -534,6 +540,7 @@ class MagnetLayer:
         r_opt = residual(theta)
         J = jac(theta)
         # ---- uncertainty: sandwich (Newey-West over time) + model error (between-band spread) ----
+        progress.stage("magnet layer: uncertainty (simulations)")
         cov_sw, nb = sandwich_cov(J, r_opt, series, tindex, lag)
         F0 = full_theta(theta)
         J_full = [np.stack([(full_theta(theta + e)[i] - F0[i]) / e[j] for j, e in enumerate(steps(theta))])

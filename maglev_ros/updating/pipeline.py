@@ -56,6 +56,7 @@ from scipy.signal import butter, sosfiltfilt
 from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
                                  TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, Metadata)
 from maglev_ros.errors import UserError
+from maglev_ros.progress import NULL, Progress
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_guideway
 from maglev_ros.updating.guideway_layer import (GuidewayLayer, GuidewayUpdate, ModalTarget, SpanModel,
                                                 StaticTarget, mac)
@@ -448,21 +449,25 @@ class TwoLayerUpdate:
 def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
                      guideway_layer: GuidewayLayer | None = None, magnet_layer: MagnetLayer | None = None,
                      magnet_fs_hz: float = 500.0, max_window_s: float | None = None, max_modes: int = 4,
-                     use_twin_input: bool = True, highpass_hz: float = 1.0, log=None) -> TwoLayerUpdate:
+                     use_twin_input: bool = True, highpass_hz: float = 1.0, log=None,
+                     progress: Progress = NULL) -> TwoLayerUpdate:
     """Ambient bag -> modes -> guideway layer [+ static deflection of the passes] -> irregularity of
     each pass for the guideway-updated twin -> magnet layer on the passes. Returns the public
-    document and the details (provenance says how each pass's irregularity was obtained)."""
+    document and the details (provenance says how each pass's irregularity was obtained).
+    ``log``: one-line messages (default: ``progress.note``)."""
     t_start = time.perf_counter()
-    say = log or (lambda s: None)
+    say = log or progress.note
     for p in passes:                  # cheap input checks before the SSI of the ambient record
         if Path(p).resolve() == Path(ambient).resolve():
             raise UserError(f"{p}: the same bag is given as --ambient and --pass")
+    progress.stage("guideway modes of the ambient recording (SSI-cov)")
     md_a, modal_res, amb_info = identify_ambient(ambient)
     cfg0 = twin_config_from_metadata(md_a.raw)
     span, target, tinfo = modal_target(modal_res.modes, md_a, cfg0, max_modes)
     say(f"ambient: {len(modal_res.modes)} modes identified, {target.n_modes} matched to FE modes of span {span.span_id}")
     recs = []
-    for p in passes:
+    progress.stage("read the passes", total=len(passes))
+    for p in progress.steps(passes, str):
         if Path(p).resolve() == Path(ambient).resolve():
             raise UserError(f"{p}: the same bag is given as --ambient and --pass")
         rec = read_pass(p, cfg0)
@@ -471,6 +476,7 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
         recs.append(rec)
     static = _merge_static([r.static for r in recs])
     gl = guideway_layer or GuidewayLayer()
+    progress.stage("guideway layer (E, rho, kb)")
     gw = gl.fit(span, target, static)
     say(f"guideway layer: {gw.n_model_evaluations} model evaluations, {gw.wall_time_s:.1f} s")
     cfg_g = updated_config(cfg0 if not recs else twin_config_from_metadata(recs[0].md.raw), gw)
@@ -482,19 +488,24 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
         ml = magnet_layer or MagnetLayer()
         # irregularity with the UPDATED guideway (its deflection is what is removed), nominal gains
         t_irr = time.perf_counter()
+        progress.stage("irregularity of each pass (updated guideway)", total=len(recs))
         evs = [pass_evidence(r, cfg_g, line, magnet_fs_hz=magnet_fs_hz, max_window_s=max_window_s,
-                             highpass_hz=highpass_hz, use_twin_input=use_twin_input, log=say) for r in recs]
+                             highpass_hz=highpass_hz, use_twin_input=use_twin_input, log=say)
+               for r in progress.steps(recs, lambda r: r.label)]
         for r, ev in zip(recs, evs):
             say(f"{r.label}: irregularity by {r.info['irregularity']['method']}; compared "
                 f"{', '.join(f'{s:.1f}' for s in ev.compared_s)} s per magnet in {ev.band_hz[0]:.2g}-"
                 f"{ev.band_hz[1]:.3g} Hz")
         t_irr = time.perf_counter() - t_irr
-        mag = ml.fit(cfg_g, line, evs)
+        mag = ml.fit(cfg_g, line, evs, progress=progress)
         say(f"magnet layer: {mag.n_model_evaluations} coupled simulations, {mag.wall_time_s:.1f} s")
+        progress.stage("magnet accelerations, nominal and updated twin", total=2)
         cfg_nom = twin_config_from_metadata(recs[0].md.raw)
         e_nom, s_nom = magnet_nrmse(cfg_nom, line, evs, ml.dt_max_s)
+        progress.advance(note="nominal")
         cfg_up = updated_config(cfg_g, None, mag)
         e_up, s_up = magnet_nrmse(cfg_up, line, evs, ml.dt_max_s)
+        progress.advance(note="updated")
         nrmse_doc = {"nominal": e_nom, "updated": e_up}
         for ev, a, b in zip(evs, s_nom, s_up):
             series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))

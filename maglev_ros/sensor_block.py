@@ -109,8 +109,9 @@ def _candidate_msg_dirs() -> list[Path]:
     if env:
         dirs.append(Path(env))
     here = Path(__file__).resolve().parent
-    dirs.append(here.parent / "msg_defs" / "msg")          # source checkout
-    dirs.append(Path(sys.prefix) / "share" / MSG_PACKAGE / "msg")   # pip / venv install
+    dirs.append(here / "msg")                              # package data of a wheel (setup.py)
+    dirs.append(here.parent / "msg_defs" / "msg")          # source checkout, editable install
+    dirs.append(Path(sys.prefix) / "share" / MSG_PACKAGE / "msg")   # maglev_msgs in a venv
     for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
         if prefix:
             dirs.append(Path(prefix) / "share" / MSG_PACKAGE / "msg")
@@ -123,9 +124,10 @@ def msg_dir() -> Path:
     for d in _candidate_msg_dirs():
         if (d / "SensorBlock.msg").is_file():
             return d
-    raise UserError("cannot find maglev_msgs .msg files (looked in "
+    raise UserError("cannot find the maglev_msgs .msg files (looked in "
                     + ", ".join(str(d) for d in _candidate_msg_dirs())
-                    + "); set MAGLEV_MSG_DIR")
+                    + "); reinstall maglev_ros from its source tree, or set MAGLEV_MSG_DIR "
+                    "to a directory holding SensorBlock.msg")
 
 
 @functools.lru_cache(maxsize=None)

@@ -8,6 +8,7 @@ import os
 import signal
 import time
 from dataclasses import replace
+from typing import Callable
 
 import numpy as np
 import pytest
@@ -17,12 +18,36 @@ from maglev_ros.twin.guideway import Guideway
 from maglev_ros.updating.grp import grey_relational_projection
 from maglev_ros.updating.guideway_layer import GuidewayLayer, ModalTarget, SpanModel, StaticTarget
 from maglev_ros.updating.history import ParameterHistory
-from maglev_ros.updating.mopso import MOPSO, pymoo_nsga2
+from maglev_ros.updating.mopso import MOPSO, ParetoResult
 from maglev_ros.updating.sampling import maximin_distance, optimal_lhs
 
 SPAN = {"spans": [{"id": "S1", "start_m": 0.0, "length_m": 12.384}]}
 XS = np.linspace(1.5, 10.9, 7)
 OFFS = np.array([0.0, -1.548, -6.192, -7.740, -12.384, -13.932, -18.576, -20.124])
+
+
+def pymoo_nsga2(func: Callable[[np.ndarray], np.ndarray], lower, upper, n_obj: int, pop_size: int = 100,
+                n_generations: int = 100, seed: int = 0) -> ParetoResult:
+    """The same problem solved with pymoo's NSGA-II (an independent peer of ``MOPSO``)."""
+    from pymoo.algorithms.moo.nsga2 import NSGA2
+    from pymoo.core.problem import Problem
+    from pymoo.optimize import minimize
+
+    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    counter = {"n": 0}
+
+    class _P(Problem):
+        def __init__(self):
+            super().__init__(n_var=lo.size, n_obj=n_obj, xl=lo, xu=hi)
+
+        def _evaluate(self, X, out, *args, **kwargs):
+            counter["n"] += X.shape[0]
+            out["F"] = np.asarray(func(X), dtype=float)
+
+    res = minimize(_P(), NSGA2(pop_size=pop_size), ("n_gen", n_generations), seed=seed, verbose=False)
+    X, F = np.atleast_2d(res.X), np.atleast_2d(res.F)
+    order = np.argsort(F[:, 0])
+    return ParetoResult(X[order], F[order], counter["n"], n_generations, "pymoo-nsga2")
 
 
 def _span(cfg=None):

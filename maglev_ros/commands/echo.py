@@ -17,5 +17,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from maglev_ros.nodes import require_ros
+    require_ros()
     from maglev_ros.nodes import echo as echo_node
     return echo_node.run(args)

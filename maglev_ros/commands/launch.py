@@ -23,6 +23,8 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from maglev_ros.nodes import require_ros
+    require_ros()
     from maglev_ros.launcher import launch
     from maglev_ros.replay_timing import check_rate
     if args.bag and not os.path.exists(args.bag):

@@ -55,5 +55,7 @@ def ros_arguments(args) -> list[str]:
 
 
 def run(args) -> int:
+    from maglev_ros.nodes import require_ros
+    require_ros()
     from maglev_ros.nodes import replay as replay_node
     return replay_node.main(["replay"] + ros_arguments(args))

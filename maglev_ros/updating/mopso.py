@@ -13,7 +13,7 @@
 Objective functions are vectorised: ``f(X (n, d)) -> (n, m)``.
 
 Hand-written because pymoo has no MOPSO with the paper's grid archive; pymoo's NSGA-II solves the
-same problem as a cross-check (``pymoo_nsga2``).
+same problem as a cross-check in the tests (tests/test_updating_core.py).
 """
 from __future__ import annotations
 
@@ -137,26 +137,3 @@ class MOPSO:
         order = np.argsort(af[:, 0])
         return ParetoResult(ax[order], af[order], n_eval, self.n_iterations, "mopso")
 
-
-def pymoo_nsga2(func: Callable[[np.ndarray], np.ndarray], lower, upper, n_obj: int, pop_size: int = 100,
-                n_generations: int = 100, seed: int = 0) -> ParetoResult:
-    """The same problem solved with pymoo's NSGA-II (cross-check of ``MOPSO``)."""
-    from pymoo.algorithms.moo.nsga2 import NSGA2
-    from pymoo.core.problem import Problem
-    from pymoo.optimize import minimize
-
-    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
-    counter = {"n": 0}
-
-    class _P(Problem):
-        def __init__(self):
-            super().__init__(n_var=lo.size, n_obj=n_obj, xl=lo, xu=hi)
-
-        def _evaluate(self, X, out, *args, **kwargs):
-            counter["n"] += X.shape[0]
-            out["F"] = np.asarray(func(X), dtype=float)
-
-    res = minimize(_P(), NSGA2(pop_size=pop_size), ("n_gen", n_generations), seed=seed, verbose=False)
-    X, F = np.atleast_2d(res.X), np.atleast_2d(res.F)
-    order = np.argsort(F[:, 0])
-    return ParetoResult(X[order], F[order], counter["n"], n_generations, "pymoo-nsga2")

@@ -20,8 +20,8 @@ GRAPHS: dict[str, list[NodeSpec]] = {
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
         NodeSpec("irregularity", "maglev_ros.nodes.irregularity", params={"highpass_hz": 0.5}),
         NodeSpec("modal_id", "maglev_ros.nodes.modal_id"),
-        NodeSpec("updater", "maglev_ros.nodes.updater",
-                 params={"history_path": "maglev_twin_parameters.jsonl"}),
+        # history_path: set by the launcher in its output directory (unset: memory only)
+        NodeSpec("updater", "maglev_ros.nodes.updater"),
         NodeSpec("discrepancy", "maglev_ros.nodes.discrepancy"),
         # the twin measures the irregularity under the vehicle itself (irregularity_source
         # "vehicle"; see maglev_ros.twin.online) and judges vehicle channels only where it has

@@ -56,12 +56,45 @@ def test_core_updates_on_material_change_only_and_restores(tmp_path):
     recs = [json.loads(l) for l in hist.read_text().splitlines()]
     assert [r["revision"] for r in recs] == [1, 2]
     assert recs[1]["data_used"]["kind"] == "modes" and recs[1]["fit"]["max_freq_error_after"] < 0.005
-    # restart: the last accepted parameters are restored and republished unchanged
+    # restart: the last accepted parameters of this line are restored and republished unchanged
     again = OnlineUpdater(hist)
-    last = again.restore()
-    assert last.revision == 2 and last.values == pub2.values and last.names == pub2.names
     again.set_metadata(md)
+    restored = again.restore()
+    last = restored.publication
+    assert last.revision == 2 and last.values == pub2.values and last.names == pub2.names
+    assert "continuing from revision 2" in restored.message and str(hist) in restored.message
     assert again.on_modes(true_modes(md, F2, seed=5)) is None
+
+
+def test_history_of_another_line_is_never_loaded(tmp_path):
+    md = ambient_metadata(DESIGN)
+    hist = tmp_path / "h.jsonl"
+    up = OnlineUpdater(hist)
+    up.set_metadata(md)
+    assert up.restore().publication is None
+    assert up.on_modes(true_modes(md, F1, seed=1)).revision == 1
+    # the same file, a recording of another line (other spans): nothing loaded, and it says so
+    other = json.loads(json.dumps(md))
+    other["line"]["spans"][0]["length_m"] = 24.0
+    up2 = OnlineUpdater(hist)
+    up2.set_metadata(other)
+    restored = up2.restore()
+    assert restored.publication is None and up2.current == {} and up2.revision == 0
+    assert "1 record(s) of other lines" in restored.message
+    # the first line's record is still there for a recording of the first line
+    up3 = OnlineUpdater(hist)
+    up3.set_metadata(md)
+    assert up3.restore().publication.revision == 1
+
+
+def test_history_without_a_path_stays_in_memory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    md = ambient_metadata(DESIGN)
+    up = OnlineUpdater(None)
+    up.set_metadata(md)
+    assert "memory only" in up.restore().message
+    assert up.on_modes(true_modes(md, F1, seed=1)).revision == 1
+    assert list(tmp_path.iterdir()) == []
 
 
 def _env():
@@ -108,15 +141,18 @@ def test_updater_node_publishes_stores_and_republishes_after_restart(tmp_path):
     assert json.loads(m["provenance_json"])["data_used"]["kind"] == "modes"
     recs = [json.loads(l) for l in hist.read_text().splitlines()]
     assert len(recs) == 1 and recs[0]["revision"] == 1
-    # restart: republished from the history without any new evidence
+    # restart: when the line's metadata arrives, republished from the history (the same modes
+    # again are no new evidence: no new revision)
     node2 = subprocess.Popen(node_cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out2 = tmp_path / "got2.json"
     coll2 = subprocess.Popen([sys.executable, str(HERE / "ros_collect.py"), str(out2), "40", "2",
                               "maglev_msgs/msg/TwinParameters:/maglev/twin/parameters"], env=env)
+    pub2 = subprocess.Popen([sys.executable, str(HERE / "updating_data.py"), str(tmp_path / "md.json"),
+                             str(tmp_path / "modes.json"), "30"], env=env)
     try:
         coll2.wait(timeout=60)
     finally:
-        _stop(coll2, node2)
+        _stop(pub2, coll2, node2)
     got2 = json.loads(out2.read_text())["/maglev/twin/parameters"]
     assert got2 and got2[-1]["revision"] == 1 and got2[-1]["values"] == m["values"]
 

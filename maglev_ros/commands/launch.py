@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from maglev_ros.errors import UserError
 
@@ -16,6 +17,12 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
+    p.add_argument("--out", default="out/monitor", metavar="DIR",
+                   help="output directory of the launch (default out/monitor): the updater's "
+                        "parameter history goes there")
+    p.add_argument("--history", metavar="FILE",
+                   help="the updater's parameter history (default DIR/twin_parameters.jsonl); only "
+                        "records of the recording's own line are loaded from it")
     p.add_argument("--linger", type=float, default=30.0, metavar="S",
                    help="after a finite replay ends, keep the graph running this long so the twin, "
                         "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
@@ -37,5 +44,12 @@ def run(args) -> int:
     replay = {"rate": float(args.rate), "fast": bool(args.fast), "progress": False}
     if args.linger < 0:
         raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
-    return launch(args.graph, bag=args.bag, overrides={"replay": replay},
-                  params_file=args.params_file, linger_s=args.linger)
+    history = Path(args.history) if args.history else Path(args.out) / "twin_parameters.jsonl"
+    try:
+        history.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
+    print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
+          f"{history.resolve()}", flush=True)
+    return launch(args.graph, bag=args.bag, params_file=args.params_file, linger_s=args.linger,
+                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}})

@@ -4,10 +4,13 @@ Subscribes /testline/metadata (latched), /maglev/modes (ModalEstimate),
 /maglev/twin/residual/vehicle_accel (SensorBlock) and, for the magnet layer's twin input,
 /testline/vehicle/{accel,gap,position}. Publishes /maglev/twin/parameters (TwinParameters,
 latched) after each accepted update; each accepted update is stored in the parameter history
-(parameter ``history_path``, JSON lines, atomic). On start the last accepted record of the history
-is republished, so a restarted node (and a late twin) get the current parameters.
+(parameter ``history_path``, JSON lines, atomic; unset: memory only), tagged with the line (a hash
+of the metadata's line and design blocks). When the metadata arrives, the last record of THAT line
+is republished, so a restarted node (and a late twin) get the current parameters; records of
+another line are never loaded, and the log says what was loaded and from where.
 
-Parameters: ``history_path`` (default ``maglev_twin_parameters.jsonl``), ``freq_rel_tol`` (2e-3),
+Parameters: ``history_path`` (default unset: memory only; ``maglev-ros launch`` sets it in its
+``--out`` directory), ``freq_rel_tol`` (2e-3),
 ``n_sigma`` (3.0), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15),
 ``max_window_s`` (8.0), ``max_lag_s`` (10.0: extra seconds of vehicle streams kept, as the twin's
 residuals lag the stream), ``min_speed_mps`` (0.1), ``magnet_layer`` (true: run it when the
@@ -43,7 +46,7 @@ class UpdaterNode(Node):
         from maglev_ros.updating.online import OnlineUpdater
         p = self.declare_parameter
         self.core = OnlineUpdater(
-            p("history_path", "maglev_twin_parameters.jsonl").value,
+            p("history_path", "").value or None,
             freq_rel_tol=float(p("freq_rel_tol", 2e-3).value), n_sigma=float(p("n_sigma", 3.0).value),
             max_modes=int(p("max_modes", 4).value), magnet_min_s=float(p("magnet_min_s", 3.0).value),
             nrmse_trigger=float(p("nrmse_trigger", 0.15).value), max_window_s=float(p("max_window_s", 8.0).value),
@@ -58,10 +61,9 @@ class UpdaterNode(Node):
         self.create_subscription(SensorBlock, TOPIC_RESIDUAL, self._on_residual, QOS_STREAM)
         for t in VEHICLE_TOPICS:
             self.create_subscription(SensorBlock, t, self._vehicle(t), QOS_STREAM)
-        last = self.core.restore()
-        if last is not None:
-            self.get_logger().info(f"republishing parameters rev {last.revision} from {self.core.history.path}")
-            self._publish(last)
+        self.line: str | None = None      # line key of the metadata the history was restored for
+        if self.core.history.path is None:
+            self.get_logger().warning("history_path not set: accepted parameters are kept in memory only")
 
     def _drain_log(self) -> None:
         """Print the core's new log lines (call with the lock held)."""
@@ -84,11 +86,22 @@ class UpdaterNode(Node):
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
+        from maglev_ros.updating.history import line_key
         try:
             with self.lock:
                 self.core.set_metadata(json.loads(msg.data))
+                key = line_key(self.core.md.raw)
+                if key == self.line:
+                    return
+                # a new line (or the first metadata): its own history, never another line's
+                self.line = key
+                restored = self.core.restore()
         except (UserError, ValueError) as exc:
             self.get_logger().error(f"/testline/metadata: {exc}")
+            return
+        self.get_logger().info(restored.message)
+        if restored.publication is not None:
+            self._publish(restored.publication)
 
     def _on_modes(self, msg) -> None:
         from maglev_ros.errors import UserError

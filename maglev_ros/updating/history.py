@@ -9,24 +9,38 @@ Hand-written: a few lines; sqlite would also do, but JSON lines stay readable wi
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
 import time
 from pathlib import Path
+from typing import Any, Mapping
 
 from maglev_ros.errors import UserError
 
 SCHEMA = "maglev-param-history/1"
 
 
+def line_key(metadata: Mapping[str, Any]) -> str:
+    """Identity of a test line for the history: a hash of the metadata's ``line`` and ``design``
+    blocks (the contract has no line id; parameters updated on one line never apply to another)."""
+    ident = {"line": metadata.get("line"), "design": metadata.get("design")}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:16]
+
+
 class ParameterHistory:
-    def __init__(self, path: str | os.PathLike):
-        self.path = Path(path)
+    """Accepted updates in ``path`` (JSON lines); ``path`` None keeps them in memory only."""
+
+    def __init__(self, path: str | os.PathLike | None):
+        self.path = Path(path) if path else None
         self.skipped: list[str] = []
+        self._memory: list[dict] = []
 
     def records(self) -> list[dict]:
         self.skipped = []
+        if self.path is None:
+            return list(self._memory)
         if not self.path.exists():
             return []
         out = []
@@ -46,17 +60,21 @@ class ParameterHistory:
                 self.skipped.append(f"line {i + 1}: {exc}")
         return out
 
-    def last(self) -> dict | None:
-        recs = self.records()
+    def last(self, line: str | None = None) -> dict | None:
+        """The last record (of line ``line`` when given: records of other lines are passed over)."""
+        recs = [r for r in self.records() if line is None or r.get("line") == line]
         return recs[-1] if recs else None
 
     def append(self, parameters: dict, data_used: dict | None = None, fit: dict | None = None,
-               _before_rename=None) -> dict:
+               _before_rename=None, line: str | None = None) -> dict:
         """Store one accepted update; returns the record (with its revision)."""
         prev = self.records()
         rec = {"schema": SCHEMA, "revision": (prev[-1]["revision"] + 1) if prev else 1,
-               "time_unix_s": time.time(), "parameters": parameters, "data_used": data_used or {},
-               "fit": fit or {}}
+               "time_unix_s": time.time(), "line": line, "parameters": parameters,
+               "data_used": data_used or {}, "fit": fit or {}}
+        if self.path is None:
+            self._memory.append(rec)
+            return rec
         body = "".join(json.dumps(r, allow_nan=False) + "\n" for r in prev + [rec])
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)

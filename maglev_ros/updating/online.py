@@ -29,7 +29,8 @@ Decisions (choices; the paper updates offline):
 - Stale residuals: the twin stamps its outputs' ``frame_id`` "twin rev <n>" with the revision of
   the parameters it adopted; residual blocks of a revision older than the accepted one (computed
   before the twin adopted the update, the twin lags the stream) are not judged.
-- Restart: ``restore()`` returns the last accepted record of the history (republished as is).
+- Restart: ``restore()`` (after the metadata) returns the last accepted record of this line in the
+  history (republished as is); records of another line are never loaded, and the message says so.
 
 Published parameter names are the twin's dotted design paths (``guideway.youngs_modulus_pa``,
 ``levitation.kp_a_per_m``) that ``twin.online.OnlineTwin.set_parameters`` adopts.
@@ -48,7 +49,7 @@ from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_V
 from maglev_ros.errors import UserError
 from maglev_ros.twin.design import line_spans, twin_config_from_metadata, with_guideway, with_levitation
 from maglev_ros.updating.guideway_layer import GuidewayLayer, SpanModel
-from maglev_ros.updating.history import ParameterHistory
+from maglev_ros.updating.history import ParameterHistory, line_key
 from maglev_ros.updating.magnet_layer import MagnetLayer, make_evidence
 from maglev_ros.updating.parameters import GUIDEWAY_PARAMS, MAGNET_PARAMS, UNITS
 from maglev_ros.updating.pipeline import TWIN_NAMES, _runs, modal_target
@@ -77,6 +78,13 @@ class Publication:
         return {"revision": self.revision, "names": list(self.names), "values": list(self.values),
                 "units": list(self.units), "std": [None if not math.isfinite(s) else s for s in self.std],
                 "identifiable": list(self.identifiable), "provenance_json": self.provenance_json}
+
+
+@dataclass(frozen=True)
+class Restored:
+    """What ``restore`` found: the publication to republish (None: start from the design) and why."""
+    publication: Publication | None
+    message: str
 
 
 def publication_from_record(rec: Mapping) -> Publication:
@@ -122,15 +130,33 @@ class OnlineUpdater:
         """Revision of the accepted parameters (0: none yet)."""
         return int(self._revision)
 
-    def restore(self) -> Publication | None:
-        rec = self.history.last()
-        if rec is None:
-            return None
+    def restore(self) -> Restored:
+        """Continue from the last record of this line's history (call after ``set_metadata``).
+
+        Records of other lines (another ``line``/``design`` block) are never loaded; the message
+        says what was loaded, or why nothing was."""
+        if self.md is None:
+            raise UserError("/testline/metadata: not received yet; the parameter history is per line")
+        where = "memory only" if self.history.path is None else str(self.history.path)
+        recs = self.history.records()
+        key = line_key(self.md.raw)
+        mine = [r for r in recs if r.get("line") == key]
+        others = len(recs) - len(mine)
+        other_note = (f"; {others} record(s) of other lines or of unknown line there are not used"
+                      if others else "")
+        if not mine:
+            self.current, self._revision, self._last_freqs = {}, 0, None
+            return Restored(None, f"parameter history {where}: nothing for this line yet (line "
+                                  f"{key}), starting from the design{other_note}")
+        rec = mine[-1]
         self.current = {n: dict(v) for n, v in rec["parameters"].items()}
         self._revision = int(rec["revision"])
         f = (rec.get("data_used") or {}).get("frequencies_hz")
         self._last_freqs = None if f is None else np.asarray(f, float)
-        return publication_from_record(rec)
+        src = (rec.get("data_used") or {}).get("recording") or "an earlier run"
+        return Restored(publication_from_record(rec),
+                        f"parameter history {where}: continuing from revision {rec['revision']} of this "
+                        f"line (line {key}, from {src}){other_note}")
 
     def set_metadata(self, metadata: Mapping | Metadata) -> None:
         self.md = metadata if isinstance(metadata, Metadata) else metadata_from_dict(dict(metadata), "/testline/metadata")
@@ -146,7 +172,10 @@ class OnlineUpdater:
 
     def _accept(self, params: dict, data_used: dict, fit: dict) -> Publication:
         merged = {**self.current, **params}
-        rec = self.history.append(merged, data_used, fit)
+        line = line_key(self.md.raw) if self.md is not None else None
+        if self.md is not None:     # which recording the update came from, for the restart message
+            data_used = {**data_used, "recording": (self.md.description or "unnamed recording")[:120]}
+        rec = self.history.append(merged, data_used, fit, line=line)
         self.current = merged
         self._revision = int(rec["revision"])
         return publication_from_record(rec)

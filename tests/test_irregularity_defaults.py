@@ -167,17 +167,20 @@ def test_short_synthetic_passes(dur_s, kmh, fs_hz, order):
     assert c >= CORR_MIN and rel <= REL_ERR_MAX, (c, rel)
 
 
-def test_streaming_gives_the_batch_answer_with_the_same_rule():
-    """The node's core: fed block by block and told the pass length, the streaming profiler picks
-    the batch's corner and band and gives the batch's profile."""
+@pytest.mark.parametrize("told_length", [True, False])
+def test_streaming_gives_the_batch_answer_with_the_same_rule(told_length):
+    """The node's core: fed block by block, told the pass length or not (then the whole short
+    pass is still buffered when it ends), the streaming profiler picks the batch's corner and
+    band and gives the batch's profile."""
     from maglev_ros.commands.irregularity import read_inputs
     inp = read_inputs(str(BAGS / "paper_pass"))
     batch = InertialProfiler().fit(**inp)
     inc = IncrementalProfiler(inp["magnet_offsets_m"], inp["nominal_gap_m"],
                               channel_pairs=inp["channel_pairs"],
                               band_speed_mps=batch.band_speed_mps,
-                              expected_pass_s=batch.corner.usable_s)
-    assert inc.cfg.highpass_hz == pytest.approx(batch.highpass_hz)
+                              expected_pass_s=batch.corner.usable_s if told_length else None)
+    if told_length:
+        assert inc.cfg.highpass_hz == pytest.approx(batch.highpass_hz)
 
     def blk(cd, i0, i1):
         return NS(time_s=cd.time_s[i0:i1], data=cd.data[i0:i1], channels=cd.channels,
@@ -189,6 +192,7 @@ def test_streaming_gives_the_batch_answer_with_the_same_rule():
         inc.partial_fit(blk(a, i, i + step), blk(g, i, i + step),
                         blk(p, int(i / ratio), int((i + step) / ratio)))
     res = inc.result()
+    assert res.highpass_hz == pytest.approx(batch.highpass_hz)
     assert (res.min_wavelength_m, res.max_wavelength_m) == pytest.approx(
         (batch.min_wavelength_m, batch.max_wavelength_m))
     common, ib, is_ = np.intersect1d(np.round(batch.position_m, 6), np.round(res.position_m, 6),

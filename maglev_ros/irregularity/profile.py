@@ -812,11 +812,12 @@ class IncrementalProfiler:
 
     The band must be fixed up front (``max_wavelength_m``, or ``band_speed_mps`` with default
     4.17 m/s = 15 km/h), and so must the corner: ``highpass_hz``, or, when None, the batch rule
-    (:func:`auto_highpass_hz`) for ``expected_pass_s`` seconds of clean moving data (with the same
-    corner and band speed the batch fit gives the same profile), or, without it, its noise floor
-    ``min_highpass_hz`` (an open-ended stream). Signals are processed in overlapping time windows:
-    each run covers the
-    buffer from ``margin_s`` before the last committed time to the newest sample present on all
+    (:func:`auto_highpass_hz`) for ``expected_pass_s`` seconds of clean moving data, or, without
+    it, the rule's noise floor ``min_highpass_hz`` for the windows; until the first window is
+    committed (``hop_s + margin_s``, 33 s at 0.2 Hz) the whole stream is still buffered, and
+    :meth:`result` then applies the batch rule to it. Either way, with the same corner and band
+    speed the batch fit gives the same profile. Signals are processed in overlapping time
+    windows: each run covers the buffer from ``margin_s`` before the last committed time to the newest sample present on all
     three topics, and commits samples up to ``margin_s`` before its end
     (``margin_s = edge_s + 2 / f_c``), so every committed sample had at least ``margin_s`` of
     context on both sides, as in the batch fit. Memory: the signal buffers hold at most
@@ -833,6 +834,8 @@ class IncrementalProfiler:
             band_speed_mps = 15.0 / 3.6
         cfg = InertialProfiler(band_speed_mps=band_speed_mps,
                                max_wavelength_m=max_wavelength_m, **profiler_kwargs)
+        # corner from the buffered stream while nothing is committed (see the class docstring)
+        self._rule_cfg = cfg if cfg.highpass_hz is None and expected_pass_s is None else None
         if cfg.highpass_hz is None:
             cfg = cfg.with_corner(
                 cfg.corner_for(float(expected_pass_s)) if expected_pass_s is not None
@@ -879,8 +882,9 @@ class IncrementalProfiler:
         self.max_buffer_samples = max(self.max_buffer_samples, self.streams["accel"].t.size)
         return self
 
-    def _process(self, t_commit_end: float, final: bool, acc=None):
+    def _process(self, t_commit_end: float, final: bool, acc=None, cfg=None):
         acc = self.acc if acc is None else acc
+        cfg = self.cfg if cfg is None else cfg
         s = self.streams
         t_end = min(x.last() for x in s.values())
         a_v, g_v, p_v = s["accel"].view(), s["gap"].view(), s["position"].view()
@@ -890,16 +894,16 @@ class IncrementalProfiler:
                               sample_rate_hz=a_v.sample_rate_hz)
         if a_v.time_s.size < 16:
             return
-        specs, samp, warns, biases, fs, t = self.cfg.samples(
+        specs, samp, warns, biases, fs, t = cfg.samples(
             a_v, g_v, p_v, self.offsets, self.g0, None, self.pairs)
         self.specs = specs
         lo = -math.inf if self.t_committed is None else self.t_committed
         hi = math.inf if final else t_commit_end
         win = (t >= lo) & (t < hi)
         v = samp[0][2]
-        v_band = self._v_band()
+        v_band = self._v_band(cfg)
         for k, (x, r, vv) in enumerate(samp):
-            keep = win & np.isfinite(r) & (vv >= self.cfg.slow_speed_mps(v_band))
+            keep = win & np.isfinite(r) & (vv >= cfg.slow_speed_mps(v_band))
             acc.add(k, x[keep], r[keep])
             if not final:
                 self.biases.setdefault(k, []).append(biases[k])
@@ -907,7 +911,7 @@ class IncrementalProfiler:
             mv = win & np.isfinite(v)
             if mv.any():
                 self.v_max = max(self.v_max, float(v[mv].max()))
-            slow = mv & (v < self.cfg.slow_speed_mps(v_band))
+            slow = mv & (v < cfg.slow_speed_mps(v_band))
             self.slow_s += slow.sum() / fs
             self.slow_m += float(v[slow].sum() / fs)
             for w in warns:
@@ -920,36 +924,61 @@ class IncrementalProfiler:
             for st in s.values():
                 st.drop_before(keep_from - 1.0)   # 1 s spare for the slower position stream
 
-    def _v_band(self) -> float:
-        c = self.cfg
+    def _v_band(self, cfg=None) -> float:
+        c = self.cfg if cfg is None else cfg
         if c.max_wavelength_m is not None:
             return max(c.band_factor * c.highpass_hz * float(c.max_wavelength_m), c.stop_speed_mps)
         return max(float(c.band_speed_mps), c.stop_speed_mps)
+
+    def _buffered_max_speed(self, cfg) -> float:
+        """Top band-test speed in the buffer (the uncommitted tail counts too, as in the batch)."""
+        st = self.streams["position"]
+        if not st.t.size or "speed_mps" not in (st.channels or ()):
+            return 0.0
+        fs_pos = st.fs or (1.0 / float(np.median(np.diff(st.t))) if st.t.size > 1 else 1.0)
+        v = cfg.band_speed_series(np.abs(st.d[:, st.channels.index("speed_mps")]), fs_pos)
+        v = v[np.isfinite(v) & (v >= cfg.stop_speed_mps)]
+        return float(v.max()) if v.size else 0.0
+
+    def _buffered_corner(self):
+        """The batch rule's profiler for the buffered stream, or None (corner fixed up front, a
+        window already committed, or no clean moving stretch yet)."""
+        if self._rule_cfg is None or self.t_committed is not None:
+            return None
+        s = self.streams
+        try:
+            base = self._rule_cfg
+            usable = base.usable_s(s["accel"].view(), s["gap"].view(), s["position"].view(),
+                                   self.offsets, self.pairs)
+            return base.with_corner(base.corner_for(usable))
+        except UserError:
+            return None
 
     def result(self) -> IrregularityResult:
         """The profile so far, including the not yet committed tail (processed on a copy)."""
         import copy
         acc = copy.deepcopy(self.acc)
-        if self.streams["accel"].t.size and min(st.t.size for st in self.streams.values()):
-            self._process(math.inf, final=True, acc=acc)
+        have = self.streams["accel"].t.size and min(st.t.size for st in self.streams.values())
+        c = (self._buffered_corner() if have else None) or self.cfg
+        if have:
+            self._process(math.inf, final=True, acc=acc, cfg=c)
         if self.specs is None:
             raise UserError("irregularity stream: no complete accel/gap/position data yet")
-        v_band = self._v_band()
-        c = self.cfg
+        v_band = self._v_band(c)
         fs = self.streams["accel"].fs or 1000.0
+        v_max = max(self.v_max, self._buffered_max_speed(c))
         lam_max = c.longest_wavelength_m(v_band)
-        lam_min = c.shortest_wavelength_m(self.v_max, fs)
+        lam_min = c.shortest_wavelength_m(v_max, fs)
         warns = list(self.warnings)
         if self.slow_s > 0:
             warns.append(DataWarning(
                 "slow_section", "/testline/vehicle/position",
                 f"speed below {c.slow_speed_mps(v_band):.3g} m/s (the band's slowest) for "
-                f"{self.slow_s:.3g} s "
-                f"({self.slow_m:.3g} m travelled); those positions are dropped",
+                f"{self.slow_s:.3g} s ({self.slow_m:.3g} m travelled); those positions are dropped",
                 value=self.slow_m))
         biases = [float(np.mean(self.biases.get(k, [0.0]))) for k in range(len(self.specs))]
         return _finish(acc, self.specs, warns, biases, c, v_band, lam_min, lam_max, "loaded",
-                       sample_step_m=self.v_max / fs)
+                       sample_step_m=v_max / fs)
 
 
 def magnet_channel_pairs(metadata, accel_channels=None, gap_channels=None) -> dict | None:

@@ -56,9 +56,22 @@ def test_sensorblock_msg_matches_the_contract():
 
 
 def test_readme_command_is_installed_in_the_environment_bin():
-    """The README runs `.venv/bin/maglev-ros demo`: the editable install must put the console
-    script next to the interpreter (setup.cfg's [develop] script_dir; the ament template's
-    lib/maglev_ros left a fresh clone without it)."""
+    """The README runs `.venv/bin/maglev-ros demo`: the install must put the console script next
+    to the interpreter."""
     if sys.prefix == sys.base_prefix:
         pytest.skip("not running from the project's virtual environment")
     assert (Path(sys.executable).parent / "maglev-ros").exists()
+
+
+def test_contract_travels_with_the_repo_and_readme_links_resolve():
+    """docs/contract carries the shared contract unchanged; every relative README link exists."""
+    ours = (ROOT / "docs" / "contract" / "RECORDING.md").read_text()
+    assert (ROOT / "docs" / "contract" / "msg" / "SensorBlock.msg").is_file()
+    shared = ROOT.parent / "shared" / "contract" / "RECORDING.md"
+    if shared.exists():
+        assert ours.endswith(shared.read_text())
+    for doc in [ROOT / "README.md", *(ROOT / "docs").glob("*.md")]:
+        for target in re.findall(r"\]\(([^)#]+)\)", doc.read_text()):
+            if "://" not in target:
+                assert (doc.parent / target).exists(), f"{doc.name}: broken link {target}"
+        assert "../shared" not in doc.read_text(), f"{doc.name} points outside the repository"

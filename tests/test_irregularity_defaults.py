@@ -87,7 +87,8 @@ def _pass_facts(bag):
     from maglev_ros.commands.irregularity import read_inputs
     inp = read_inputs(str(bag))
     a = inp["accel"]
-    return inp, a.time_s.size / a.sample_rate_hz, float(np.min(inp["position"].channel("speed_mps")))
+    v_min = float(np.min(inp["position"].channel("speed_mps")))
+    return inp, a.time_s.size / a.sample_rate_hz, v_min
 
 
 def _check_defaults(bag, xt, rt, tmp_path, capsys):

@@ -40,8 +40,9 @@ Band (choices, stated in every result):
 * ``min_wavelength_m = max(magnet_length_m, 4 * spacing_m, 4 * v_max / fs)``. ``magnet_length_m``
   defaults to 0: the gap sensor and the accelerometer measure at a point, so the magnet's length
   (about 3 m) filters its force, not what its sensors see (measured on simulated point sensors:
-  docs/irregularity.md); set it for sensors that average over a length. The 4x grid / sampling factor keeps the bin average
-  (boxcar, gain ``sinc(spacing / wavelength)``) at >= 0.90 in the band.
+  docs/irregularity.md); set it for sensors that average over a length. The 4x grid / sampling
+  factor keeps the bin average (boxcar, gain ``sinc(spacing / wavelength)``) at >= 0.90 in the
+  band.
 * Band corners are the -6 dB (half-amplitude) points of the stated zero-phase filter; a caller
   that wants to compare with a known profile applies the same filter to it (``band_filter`` in
   :meth:`IrregularityResult.to_dict`).
@@ -88,7 +89,7 @@ from maglev_ros.irregularity.integration import (
     DEFAULT_FILTER_ORDER, DataWarning, detect_dropouts, double_integrate, _runs)
 
 __all__ = ["InertialProfiler", "IncrementalProfiler", "IrregularityResult", "CornerChoice",
-           "auto_highpass_hz", "band_filter_sos"]
+           "auto_highpass_hz", "settle_periods", "band_filter_sos"]
 
 EDGE_PER_CORNER = 0.6          # edge_s * f_c: just longer than the integrator's 0.5/f_c taper
 MIN_HIGHPASS_HZ = 0.2          # noise floor of the automatic corner (module docstring)
@@ -107,22 +108,25 @@ def band_filter_sos(min_wavelength_m: float, max_wavelength_m: float, spacing_m:
                          fs=1.0 / spacing_m, output="sos")
 
 
-def settle_per_corner(band_factor: float = 2.0, trim_wavelengths: float = 1.0,
-                      edge_per_corner: float = EDGE_PER_CORNER) -> float:
-    """Settling time of one clean stretch times f_c: two integrator edges plus two band-pass trims
-    (one longest wave ``1/(band_factor f_c)`` s each per ``trim_wavelengths``)."""
+def settle_periods(band_factor: float = 2.0, trim_wavelengths: float = 1.0,
+                   edge_per_corner: float = EDGE_PER_CORNER) -> float:
+    """Settling time of one clean stretch in periods of the corner (x 1/f_c): two integrator edges
+    plus two band-pass trims (one longest wave, ``1/(band_factor f_c)`` s, per
+    ``trim_wavelengths``)."""
     return 2.0 * edge_per_corner + 2.0 * trim_wavelengths / band_factor
 
 
 def auto_highpass_hz(usable_s: float, band_factor: float = 2.0, trim_wavelengths: float = 1.0,
                      edge_per_corner: float = EDGE_PER_CORNER, settle_fraction: float = 0.5,
                      min_highpass_hz: float = MIN_HIGHPASS_HZ) -> float:
-    """Time high-pass corner for a clean moving stretch of ``usable_s`` seconds: the lowest at which
-    the filters' settling takes at most ``settle_fraction`` of it, never below ``min_highpass_hz``."""
+    """Time high-pass corner for a clean moving stretch of ``usable_s`` seconds: the lowest at
+    which the filters' settling takes at most ``settle_fraction`` of it, never below
+    ``min_highpass_hz``."""
     if not (usable_s > 0 and math.isfinite(usable_s)):
         raise UserError(f"usable stretch: expected > 0 s of clean moving data, got {usable_s:g} s")
-    # settling = settle_per_corner / f_c must fit in settle_fraction of the stretch
-    fc = settle_per_corner(band_factor, trim_wavelengths, edge_per_corner) / (settle_fraction * usable_s)
+    # settling = periods / f_c must fit in settle_fraction of the stretch
+    periods = settle_periods(band_factor, trim_wavelengths, edge_per_corner)
+    fc = periods / (settle_fraction * usable_s)
     # the integrator itself needs 2 edges + 2/f_c per stretch (integration.double_integrate)
     fc = max(fc, 1.01 * (2.0 * edge_per_corner + 2.0) / usable_s)
     return max(fc, float(min_highpass_hz))
@@ -329,7 +333,8 @@ class InertialProfiler:
         import copy
         c = copy.copy(self)
         c.highpass_hz = float(corner.highpass_hz)
-        c.edge_s = EDGE_PER_CORNER / c.highpass_hz if self.edge_s_given is None else self.edge_s_given
+        c.edge_s = (EDGE_PER_CORNER / c.highpass_hz if self.edge_s_given is None
+                    else self.edge_s_given)
         c.corner = corner
         return c
 
@@ -352,8 +357,9 @@ class InertialProfiler:
                             f"faster than stop_speed_mps={self.stop_speed_mps:g} m/s")
         return best / fs
 
-    def resolve(self, accel, gap, position, magnet_offsets_m, channel_pairs=None) -> "InertialProfiler":
-        """This profiler with its corner fixed for the recording (itself when the corner is given)."""
+    def resolve(self, accel, gap, position, magnet_offsets_m,
+                channel_pairs=None) -> "InertialProfiler":
+        """This profiler with its corner fixed for the recording (itself when it is given)."""
         if self.highpass_hz is not None:
             return self
         return self.with_corner(self.corner_for(
@@ -817,8 +823,8 @@ class IncrementalProfiler:
     committed (``hop_s + margin_s``, 33 s at 0.2 Hz) the whole stream is still buffered, and
     :meth:`result` then applies the batch rule to it. Either way, with the same corner and band
     speed the batch fit gives the same profile. Signals are processed in overlapping time
-    windows: each run covers the buffer from ``margin_s`` before the last committed time to the newest sample present on all
-    three topics, and commits samples up to ``margin_s`` before its end
+    windows: each run covers the buffer from ``margin_s`` before the last committed time to the
+    newest sample present on all three topics, and commits samples up to ``margin_s`` before its end
     (``margin_s = edge_s + 2 / f_c``), so every committed sample had at least ``margin_s`` of
     context on both sides, as in the batch fit. Memory: the signal buffers hold at most
     ``2 * margin_s + hop_s`` plus one block; the profile grid grows with distance and is capped
@@ -839,7 +845,8 @@ class IncrementalProfiler:
         if cfg.highpass_hz is None:
             cfg = cfg.with_corner(
                 cfg.corner_for(float(expected_pass_s)) if expected_pass_s is not None
-                else CornerChoice(cfg.min_highpass_hz, "floor", min_highpass_hz=cfg.min_highpass_hz))
+                else CornerChoice(cfg.min_highpass_hz, "floor",
+                                  min_highpass_hz=cfg.min_highpass_hz))
         self.cfg = cfg
         self.offsets = [float(o) for o in magnet_offsets_m]
         self.g0 = float(nominal_gap_m)

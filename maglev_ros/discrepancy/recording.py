@@ -8,6 +8,7 @@ and, where the recording has the optional car-body topic (docs/contract-extensio
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import PurePath
 from typing import Mapping
 
 import numpy as np
@@ -60,6 +61,11 @@ class Recording:
     irregularity_margin_m: float = 0.0
     sensor_delay_s: float = 0.0
     irregularity_info: Mapping | None = None
+
+    @property
+    def name(self) -> str:
+        """The recording as reports name it: the bag's own name, never the machine path it was read from."""
+        return PurePath(self.source).name or self.source
 
     @property
     def t0_s(self) -> float:

@@ -4,17 +4,29 @@ Reads ``/testline/guideway/accel`` and identifies the modes with SSI-cov
 (:class:`maglev_ros.modal.ssi_cov.SSICov`). For a ``pass`` recording only the free decay after
 the vehicle has left the instrumented span is used (:mod:`maglev_ros.modal.free_decay`): from
 ``/testline/vehicle/position`` (rearmost magnet past the end of the last instrumented span) when
-the bag has it, else from the response envelope. Prints a table; ``--json`` writes the
-``maglev-modes/1`` document; ``--plot`` writes the stabilization diagram over the spectrum.
+the bag has it, else from the response envelope.
+
+With no options the settings follow the recording (:mod:`maglev_ros.modal.bands`): modes are
+looked for from 1 Hz (raised for a short record) to 0.4 x the sampling rate, in bands of at
+most a decade, each decimated and given block rows and orders by stated rules; the modes of all
+bands are merged. Given options override. Prints the settings and a table; ``--json`` writes
+the ``maglev-modes/1`` document (settings under ``source.settings``); ``--plot`` writes the
+stabilization diagram over the spectrum.
 """
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from maglev_ros.errors import UserError
+
+if TYPE_CHECKING:  # the science stack is imported when the verb runs, not at CLI start
+    from maglev_ros.modal.bands import BandPlan
+    from maglev_ros.modal.ssi_cov import ModalResult
 
 NAME = "modes"
 HELP = "identify guideway modes (SSI-cov; free decay for a vehicle pass)"
@@ -28,12 +40,20 @@ def add_arguments(p) -> None:
     p.add_argument("bag", metavar="BAG", help="rosbag2 directory, .mcap/.db3 file")
     p.add_argument("--json", metavar="OUT", help="write the maglev-modes/1 JSON document here")
     p.add_argument("--plot", metavar="OUT.png", help="write the stabilization diagram here")
-    p.add_argument("--fmin-hz", type=float, default=1.0, help="lowest mode frequency (default 1)")
-    p.add_argument("--fmax-hz", type=float, default=150.0, help="highest mode frequency (default 150)")
-    p.add_argument("--block-rows", type=int, default=40, help="SSI block rows i (default 40)")
-    p.add_argument("--max-order", type=int, default=80, help="highest model order (default 80)")
+    p.add_argument("--fmin-hz", type=float, default=None,
+                   help="lowest mode frequency (default: 1 Hz, raised for a short record)")
+    p.add_argument("--fmax-hz", type=float, default=None,
+                   help="highest mode frequency (default: 0.4 x the sampling rate)")
+    p.add_argument("--block-rows", type=int, default=None,
+                   help="SSI block rows i in every band (default: 2 periods of the band's lowest "
+                        "frequency)")
+    p.add_argument("--max-order", type=int, default=None,
+                   help="highest model order (default: channels x block rows / 2, at most 100)")
     p.add_argument("--decimate-to-hz", type=float, default=None,
-                   help="decimate to at least this rate (default: about 3.3 x fmax)")
+                   help="identify in one band decimated to at least this rate (default: "
+                        "bands of at most a decade, each at >= 2.5 x its top frequency)")
+    p.add_argument("--scale-channels", choices=("auto", "yes", "no"), default="auto",
+                   help="divide each channel by its std before SSI (auto: when units differ)")
     p.add_argument("--window", choices=("auto", "all", "free-decay"), default="auto",
                    help="data used: auto = free decay for a pass, everything for ambient")
 
@@ -50,12 +70,31 @@ def _span_end_m(md, channels) -> float | None:
     return max(ends) if ends else None
 
 
-def identify_bag(path, fmin_hz=1.0, fmax_hz=150.0, block_rows=40, max_order=80,
-                 decimate_to_hz=None, window="auto"):
-    """Open the bag and identify; returns (ModalResult, info dict)."""
+@dataclass(frozen=True)
+class BagModes:
+    """Modes of one recording, what was read (``info``, JSON-ready) and the settings used."""
+    result: ModalResult
+    info: dict
+    plan: BandPlan
+
+
+def identify_bag(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=None,
+                 decimate_to_hz=None, window="auto", scale_channels=None):
+    """Open the bag and identify; returns (ModalResult, info dict), see :func:`identify_modes`."""
+    out = identify_modes(path, fmin_hz, fmax_hz, block_rows, max_order, decimate_to_hz, window,
+                         scale_channels)
+    return out.result, out.info
+
+
+def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=None,
+                   decimate_to_hz=None, window="auto", scale_channels=None) -> BagModes:
+    """Open the bag and identify. Settings left at None are chosen from the recording
+    (:func:`maglev_ros.modal.bands.plan_bands`); ``info["settings"]`` states them and where
+    each came from. ``scale_channels`` None: divide each channel by its std only when the
+    channels' units differ."""
     from maglev_ros.bag_reader import BagReader
-    from maglev_ros.modal.free_decay import identify_free_decay, select_free_decay
-    from maglev_ros.modal.ssi_cov import SSICov
+    from maglev_ros.modal.bands import identify_bands, plan_bands
+    from maglev_ros.modal.free_decay import select_free_decay
 
     with BagReader(path) as r:
         if TOPIC_ACCEL not in r.topics:
@@ -66,18 +105,10 @@ def identify_bag(path, fmin_hz=1.0, fmax_hz=150.0, block_rows=40, max_order=80,
         kind = md.run_kind if md is not None else "ambient"
         pos = r.read_topic(TOPIC_POSITION) if TOPIC_POSITION in r.topics else None
     fs = float(cd.sample_rate_hz)
-    if fmax_hz >= 0.45 * fs:
-        raise UserError(f"--fmax-hz: {fmax_hz} Hz must be below 0.45 x the sampling rate "
-                        f"{fs} Hz of {TOPIC_ACCEL}")
-    if decimate_to_hz is None and fs > 4.0 * fmax_hz:
-        decimate_to_hz = 3.3 * fmax_hz
     data = np.asarray(cd.data, dtype=float)
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
     info = {"bag": str(path), "topic": TOPIC_ACCEL, "run_kind": kind, "fs_hz": fs,
             "n_samples": int(data.shape[0]), "channels": list(cd.channels)}
-    est = SSICov(block_rows=block_rows, orders=range(2, max_order + 1, 2),
-                 decimate_to_hz=decimate_to_hz, freq_range_hz=(fmin_hz, fmax_hz),
-                 uncertainty="cluster" if use_decay else "blocks")
     if use_decay:
         t = cd.time_s - cd.time_s[0]
         kw = {}
@@ -90,23 +121,39 @@ def identify_bag(path, fmin_hz=1.0, fmax_hz=150.0, block_rows=40, max_order=80,
                           rear_offset_m=min(offs))
         win = select_free_decay(data, fs, time_s=t, **kw)
         info["free_decay_window"] = win.to_dict()
-        res = identify_free_decay(data, fs, win, est, channels=cd.channels)
+        data = data[win.start_index:win.stop_index]
+    if scale_channels is None:
+        # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
+        # mixed units have no common scale, so each channel is brought to unit std
+        scale_channels = len(set(cd.units)) > 1
+        scale_src = ("channels' units differ" if scale_channels else
+                     f"all channels in {cd.units[0] if cd.units else '?'}: recorded amplitudes kept")
     else:
-        res = est.fit(data, fs, cd.channels)
-    return res, info
+        scale_src = "user"
+    plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,
+                      fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
+                      max_order=max_order, decimate_to_hz=decimate_to_hz,
+                      scale_channels=scale_channels, scale_source=scale_src)
+    info["settings"] = plan.to_dict()
+    res, _ = identify_bands(data, fs, plan, cd.channels)
+    return BagModes(res, info, plan)
 
 
 def run(args) -> int:
     bag = Path(args.bag)
     if not bag.exists():
         raise UserError(f"{bag}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
-    res, info = identify_bag(bag, args.fmin_hz, args.fmax_hz, args.block_rows, args.max_order,
-                             args.decimate_to_hz, args.window)
+    out = identify_modes(bag, args.fmin_hz, args.fmax_hz, args.block_rows, args.max_order,
+                         args.decimate_to_hz, args.window,
+                         {"auto": None, "yes": True, "no": False}[args.scale_channels])
+    res, info, plan = out.result, out.info, out.plan
     print(f"{bag}: {info['run_kind']} recording, {len(info['channels'])} channels at "
-          f"{info['fs_hz']:g} Hz, identified at {res.fs_hz:.1f} Hz")
+          f"{info['fs_hz']:g} Hz, {info['n_samples'] / info['fs_hz']:.4g} s")
     if "free_decay_window" in info:
         w = info["free_decay_window"]
         print(f"free decay ({w['method']}): {w['start_s']:.2f} .. {w['stop_s']:.2f} s")
+    for line in plan.describe():
+        print(line)
     print(f"{'id':>4s} {'f [Hz]':>9s} {'+-':>7s} {'zeta [%]':>9s} {'+-':>6s} {'MPC':>6s}")
     for m in res.modes:
         sf = m.std_frequency_hz if np.isfinite(m.std_frequency_hz) else float("nan")
@@ -122,5 +169,5 @@ def run(args) -> int:
     if args.plot:
         from maglev_ros.modal.plot import save_stabilization_diagram
         save_stabilization_diagram(res, args.plot, title=f"{bag.name}: {info['run_kind']}",
-                                   freq_range_hz=(args.fmin_hz, args.fmax_hz))
+                                   freq_range_hz=(plan.fmin_hz, plan.fmax_hz))
     return 0

@@ -42,6 +42,8 @@ def stabilization_figure(result: ModalResult, title: str = "", freq_range_hz=Non
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("model order")
     ax.set_xlim(fmin, fmax)
+    if fmin > 0 and fmax / fmin > 20:       # a multi-band search spans decades: log axis
+        ax.set_xscale("log")
     if result.spectrum is not None:
         ax2 = ax.twinx()
         sp = result.spectrum

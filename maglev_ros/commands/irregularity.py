@@ -65,8 +65,11 @@ def read_inputs(path: str):
         md = r.metadata
         for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
             if topic not in r.topics:
+                kind = md.run_kind
                 raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
-                                    "vehicle accel, gap and position)")
+                                    "vehicle accel, gap and position"
+                                    + (f"; run.kind is {kind!r}: no vehicle pass)"
+                                       if kind and kind != "pass" else ")"))
         # samples placed at the time they describe (optional acquisition delay in the metadata)
         accel, gap, pos = (r.read_topic(t).delayed_by(md.acquisition_delay_s(t))
                            for t in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))

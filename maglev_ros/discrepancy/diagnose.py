@@ -287,8 +287,12 @@ class Diagnoser:
 
         def null_key(h):
             return (_key(where(h, "fit")), _key(where(h)))
-        progress.stage(f"fit catalogue hypotheses ({len(cands)} of {len(hyps)})", total=len(cands) + len(drops))
+        # two stages: physics takes a simulation per step (10-150 s each), the rest ~1 s (one ETA misled)
+        progress.stage(f"fit {len(phys)} of {len(physics)} physics hypotheses (simulated)", total=len(phys))
         for h in cands:
+            if cheap and h is cheap[0]:
+                progress.stage(f"fit {len(cheap) + len(drops)} sensor and ambient hypotheses",
+                               total=len(cheap) + len(drops))
             progress.advance(0, note=h.label)
             try:
                 if h.effect == "ambient_excitation" and rd_amb is not None:
@@ -367,6 +371,8 @@ class Diagnoser:
                           held_llr(hf.spec))
             fits.append((hf, v, dbic))
             progress.advance(note=h.label)
+        if drops and not cheap:
+            progress.stage(f"fit {len(drops)} sensor and ambient hypotheses", total=len(drops))
         for (n, t0, t1, val) in drops:
             fits.append(self._dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff))
             local_ev[id(fits[-1][0])] = (fit_report(base.spec, rd_test, {n})[0],

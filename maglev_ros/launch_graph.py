@@ -18,7 +18,7 @@ class NodeSpec:
 GRAPHS: dict[str, list[NodeSpec]] = {
     "monitor": [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("irregularity", "maglev_ros.nodes.irregularity", params={"highpass_hz": 0.5}),
+        NodeSpec("irregularity", "maglev_ros.nodes.irregularity"),
         NodeSpec("modal_id", "maglev_ros.nodes.modal_id"),
         # history_path: set by the launcher in its output directory (unset: memory only)
         NodeSpec("updater", "maglev_ros.nodes.updater"),

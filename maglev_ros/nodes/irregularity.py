@@ -5,8 +5,9 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 
-Parameters: highpass_hz (0.2), spacing_m (0.25), band_speed_mps (0: 80% of the metadata's
-nominal speed, else 15 km/h), max_profile_m (0: unbounded), publish_period_s (1.0).
+Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
+spacing_m (0.25), band_speed_mps (0: 80% of the metadata's nominal speed, else 15 km/h),
+max_profile_m (0: unbounded), publish_period_s (1.0).
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ class IrregularityNode(Node):
     def __init__(self) -> None:
         super().__init__("irregularity")
         p = self.declare_parameter
-        self.highpass_hz = p("highpass_hz", 0.2).value
+        self.highpass_hz = p("highpass_hz", 0.0).value or None     # 0: the offline verb's rule
         self.spacing_m = p("spacing_m", 0.25).value
         self.band_speed_mps = p("band_speed_mps", 0.0).value
         self.max_profile_m = p("max_profile_m", 0.0).value

@@ -1,4 +1,5 @@
-"""SSI-cov on measured ambient vibration (weimar-frame, /work/shared/realdata, see its README).
+"""SSI-cov on measured ambient vibration (weimar-frame, ../shared/realdata next to the repo, see
+its README).
 
 Reference frequencies are the README's table (koma-python SSI-cov, an independent peer); the
 README warns that their setup-to-setup scatter is not a general tolerance, so we compare within
@@ -7,16 +8,13 @@ mono-phase: the MPC filter is switched off for this data.
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from frame_data import FRAME_DIR as DATA
+from frame_data import FRAME_REFERENCE_HZ as REFERENCE_HZ
 from maglev_ros.modal.ssi_cov import SSICov
 from maglev_ros.modal.stabilization import StabilityCriteria
-
-DATA = Path("/work/shared/realdata/weimar-frame")
-REFERENCE_HZ = np.array([1.2288, 1.4356, 2.1000, 4.0170, 4.7706, 6.6822, 7.6156, 9.6652])
 
 
 @pytest.mark.skipif(not DATA.exists(), reason="weimar-frame data not available")

@@ -126,8 +126,9 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
         # mixed units have no common scale, so each channel is brought to unit std
         scale_channels = len(set(cd.units)) > 1
+        unit = cd.units[0] if cd.units else "?"
         scale_src = ("channels' units differ" if scale_channels else
-                     f"all channels in {cd.units[0] if cd.units else '?'}: recorded amplitudes kept")
+                     f"all channels in {unit}: recorded amplitudes kept")
     else:
         scale_src = "user"
     plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,

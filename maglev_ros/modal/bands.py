@@ -98,8 +98,8 @@ class BandPlan:
                        f"({b.block_rows / b.fs_hz:.3g} s), orders 2..{b.max_order}")
         out.append(f"  rules: bands {s['bands']}; block rows {s['block_rows']}; "
                    f"orders {s['max_order']}")
-        out.append(f"  channels {'scaled to unit std before SSI' if self.scale_channels else 'as recorded'}"
-                   f" ({s['scale_channels']})")
+        how = "scaled to unit std before SSI" if self.scale_channels else "as recorded"
+        out.append(f"  channels {how} ({s['scale_channels']})")
         return out
 
 
@@ -134,9 +134,10 @@ def plan_bands(fs_hz: float, n_samples: int, n_channels: int, *, stationary: boo
     fmin_record = 2.0 * PERIODS / (LAG_FRACTION * dur)
     if fmin_hz is None:
         fmin = max(FMIN_DEFAULT_HZ, fmin_record)
-        src["fmin_hz"] = (f"lowest mode looked for, {FMIN_DEFAULT_HZ:g} Hz" if fmin == FMIN_DEFAULT_HZ
-                          else f"{2 * PERIODS / LAG_FRACTION:g} / {dur:.3g} s of data used "
-                               f"(longest lag <= {LAG_FRACTION:g} x record)")
+        src["fmin_hz"] = (f"lowest mode looked for, {FMIN_DEFAULT_HZ:g} Hz"
+                          if fmin == FMIN_DEFAULT_HZ else
+                          f"{2 * PERIODS / LAG_FRACTION:g} / {dur:.3g} s of data used "
+                          f"(longest lag <= {LAG_FRACTION:g} x record)")
     else:
         fmin = float(fmin_hz)
         src["fmin_hz"] = "user"
@@ -179,7 +180,9 @@ def plan_bands(fs_hz: float, n_samples: int, n_channels: int, *, stationary: boo
             i = int(block_rows)
         else:
             i = math.ceil(PERIODS * fs_b / s_lo)
-            i = max(4, min(i, int((LAG_FRACTION * n_b - shift) // 2)))
+            # the longest lag, 2i, stays within LAG_FRACTION of the data (fmin makes that so to
+            # a sample or two; a band whose lowest frequency the user set gets fewer rows)
+            i = max(4, min(i, int(LAG_FRACTION * n_b / 2)))
         need = 4 * i + shift
         nb = min(N_BLOCKS, n_b // need) if stationary else 1
         if nb < 3:
@@ -187,7 +190,8 @@ def plan_bands(fs_hz: float, n_samples: int, n_channels: int, *, stationary: boo
         if n_b < need:
             raise UserError(f"data: {n_b} samples at {fs_b:g} Hz are too few for block rows {i} "
                             f"(need {need}); expected a longer record or a higher --fmin-hz")
-        mo = int(max_order) if max_order is not None else _even(min(n_channels * i / 2, MAX_ORDER_CAP))
+        mo = (int(max_order) if max_order is not None
+              else _even(min(n_channels * i / 2, MAX_ORDER_CAP)))
         if mo > n_channels * i:
             raise UserError(f"--max-order: {mo} exceeds channels x block rows = {n_channels * i}; "
                             f"expected a lower order or more block rows")

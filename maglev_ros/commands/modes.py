@@ -131,10 +131,13 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
                      f"all channels in {unit}: recorded amplitudes kept")
     else:
         scale_src = "user"
-    plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,
-                      fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
-                      max_order=max_order, decimate_to_hz=decimate_to_hz,
-                      scale_channels=scale_channels, scale_source=scale_src)
+    try:
+        plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,
+                          fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
+                          max_order=max_order, decimate_to_hz=decimate_to_hz,
+                          scale_channels=scale_channels, scale_source=scale_src)
+    except UserError as e:
+        raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
     res, _ = identify_bands(data, fs, plan, cd.channels)
     return BagModes(res, info, plan)

@@ -62,7 +62,6 @@ class Band:
     block_rows: int
     max_order: int
     n_blocks: int                       # 1: cluster-spread uncertainty
-    block_rows_source: str = "rule"     # "rule" | "user"
 
     def to_dict(self) -> dict:
         return {"core_hz": [float(x) for x in self.core_hz],
@@ -195,8 +194,7 @@ def plan_bands(fs_hz: float, n_samples: int, n_channels: int, *, stationary: boo
         if mo > n_channels * i:
             raise UserError(f"--max-order: {mo} exceeds channels x block rows = {n_channels * i}; "
                             f"expected a lower order or more block rows")
-        bands.append(Band((lo, hi), (s_lo, s_hi), fs_b, q, i, mo, nb,
-                          "user" if block_rows is not None else "rule"))
+        bands.append(Band((lo, hi), (s_lo, s_hi), fs_b, q, i, mo, nb))
     return BandPlan(fmin, fmax, dur, tuple(bands), src, scale_channels)
 
 
@@ -292,11 +290,11 @@ def merge_band_results(per_band) -> ModalResult:
                             for f in ("order", "frequency_hz", "damping_ratio", "shapes", "mpc",
                                       "stable", "cluster")))
     results = [br.result for br in per_band]
-    methods = sorted({r.method for r in results})
-    uncs = sorted({r.uncertainty for r in results})
+    methods = ", ".join(dict.fromkeys(r.method for r in results))        # bands' own, in order
+    uncs = ", ".join(dict.fromkeys(r.uncertainty for r in results))
     top = max(results, key=lambda r: r.fs_hz)
-    return ModalResult(tuple(modes), table, None, top.fs_hz, top.channels, "+".join(methods),
-                       "+".join(uncs), tuple(shapes))
+    return ModalResult(tuple(modes), table, None, top.fs_hz, top.channels, methods, uncs,
+                       tuple(shapes))
 
 
 def _rescale_shapes(res: ModalResult, scale: np.ndarray) -> ModalResult:

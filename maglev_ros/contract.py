@@ -1,4 +1,4 @@
-"""The test-line recording contract, version 1 (/work/shared/contract/RECORDING.md).
+"""The test-line recording contract, version 1 (docs/contract/RECORDING.md).
 
 Topic names, the metadata JSON (``/testline/metadata``) parsed and validated into a
 :class:`Metadata`, unit checks, and the :class:`Issue` record that contract checks report.

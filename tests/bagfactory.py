@@ -22,7 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-CONTRACT_MSG_DIR = Path("/work/shared/contract/msg")
+# the contract's own .msg text (shared/ beside the repository; the repo's docs/contract/msg links to
+# msg_defs/msg, which carries it unchanged: a layout test compares the two when shared/ is there)
+_SHARED_MSG_DIR = Path(__file__).resolve().parents[2] / "shared" / "contract" / "msg"
+CONTRACT_MSG_DIR = (_SHARED_MSG_DIR if _SHARED_MSG_DIR.is_dir()
+                    else Path(__file__).resolve().parents[1] / "docs" / "contract" / "msg")
 SENSORBLOCK_TYPE = "maglev_msgs/msg/SensorBlock"
 METADATA_TOPIC = "/testline/metadata"
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bagfactory import (GUIDEWAY_ACCEL, VEHICLE_ACCEL, VEHICLE_GAP, VEHICLE_POSITION, Faults,
+from bagfactory import (CONTRACT_MSG_DIR, GUIDEWAY_ACCEL, VEHICLE_ACCEL, VEHICLE_GAP, VEHICLE_POSITION, Faults,
                         example_topics, expected_times_s, foreign_typestore, make_metadata,
                         write_contract_bag, write_foreign_bag)
 from maglev_ros.bag_reader import BagReader, ChannelData
@@ -161,7 +161,7 @@ def test_block_message_conversion_and_msg_text():
     assert list(msg.data) == list(range(10))
     assert msg_to_block(msg) == blk
     # our .msg text is the contract's, field for field
-    assert msg_text("SensorBlock") == Path("/work/shared/contract/msg/SensorBlock.msg").read_text()
+    assert msg_text("SensorBlock") == (CONTRACT_MSG_DIR / "SensorBlock.msg").read_text()
     with pytest.raises(UserError, match="2 channels"):
         Block.from_arrays(0, 1.0, ["a", "b"], ["m", "m"], np.zeros((4, 3)))
 

@@ -12,7 +12,10 @@ from bagfactory import example_topics, make_metadata
 from maglev_ros import contract as C
 from maglev_ros.errors import ContractError, UserError
 
-RECORDING_MD = Path("/work/shared/contract/RECORDING.md")
+# the contract document itself (shared/ beside the repository, else the repo's verbatim copy)
+_SHARED_MD = Path(__file__).resolve().parents[2] / "shared" / "contract" / "RECORDING.md"
+RECORDING_MD = (_SHARED_MD if _SHARED_MD.exists()
+                else Path(__file__).resolve().parents[1] / "docs" / "contract" / "RECORDING.md")
 
 
 def _contract_example() -> dict:

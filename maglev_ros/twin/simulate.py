@@ -4,7 +4,7 @@
 pass, or a modal superposition of the guideway under broadband forces for an ambient record,
 passes every channel through the instrument chain (``sensors.InstrumentChain``: gain/offset,
 causal anti-alias filter at an oversampled internal rate, decimation, white + 1/f noise) and
-writes a rosbag2 bag that follows /work/shared/contract/RECORDING.md:
+writes a rosbag2 bag that follows docs/contract/RECORDING.md:
 
 - topics /testline/metadata, /testline/guideway/accel, /testline/guideway/displacement (pass),
   /testline/vehicle/{accel,gap,position} (pass); blocks of ``block_s``; header stamps

@@ -45,9 +45,10 @@ GLOSSARY = {
                 "noise power in those bands; 3 or more flags a cell.",
     "nominal": "The value of the design (uncalibrated) twin, from the recording's design block; for found "
                "physics the value at which the physics is absent, i.e. the twin without it.",
-    "std": "One standard deviation of the calibrated value, from the spread of the calibration over the "
-           "compared channels; errors every channel shares (e.g. of the reconstructed rail) are not in it, "
-           "so take it as a lower bound. Found physics has no std here.",
+    "std": "One standard deviation of a value, where the analysis gives one. The diagnosis gives none, neither "
+           "for its calibrated parameters nor for found physics (shown as \u2014): its fit's own estimate was "
+           "far below the true error on recordings with known truth; 'maglev-ros update' estimates one per "
+           "parameter.",
 }
 
 # calibrated parameters: plain name, symbol, display unit and its factor from SI
@@ -147,7 +148,7 @@ def _severity_colorbar(fig, im, axes, vmax: float) -> None:
     ticks = [x for x in (0, 1, 3, 10, 30, 100, 300, 1000, 3000, 10000) if math.log10(1 + x) <= vmax + 1e-9]
     cb.set_ticks([math.log10(1 + x) for x in ticks])
     cb.set_ticklabels([f"{x:g}" for x in ticks])
-    cb.set_label("|measured - twin| band power / noise power")
+    cb.set_label("|measured - twin| band power\nin multiples of the noise power", fontsize=8)
 
 
 def _maps_figure(rmap, title: str):
@@ -366,7 +367,7 @@ def _physics_param_rows(m: dict, recs: list) -> list[list]:
 
 def _parameter_rows(rep: dict) -> list[list]:
     """Calibrated parameters: design value, updated value, change, std (from ``parameter_details``
-    when the report has it)."""
+    when the report has them)."""
     det = rep.get("parameter_details") or {}
     rows = []
     for k, v in rep["updated_parameters"].items():

@@ -44,9 +44,18 @@ def test_report_json_follows_the_public_schema(run):
     assert rep["schema"] == "maglev-diagnosis/1"
     for k in ("fit_before", "fit_after"):
         assert _num(rep[k]["nrmse"]) and all(_num(v) for v in rep[k]["per_channel"].values())
+    bags = {p.name for p in (run.parent / "bags").iterdir()}
     for m in rep["mismatches"]:
-        assert set(m) == {"channels", "time_s", "position_m", "frequency_hz", "severity"}
+        # the schema's keys, and the optional recording (a bag's name, or what spans several) and times
+        # from its start
+        assert set(m) - {"recording", "time_from_start_s"} == {"channels", "time_s", "position_m",
+                                                                "frequency_hz", "severity"}
         assert len(m["time_s"]) == 2 and (m["position_m"] is None or len(m["position_m"]) == 2)
+        assert "/" not in m.get("recording", "")
+        if m.get("recording") in bags:
+            assert 0.0 <= m["time_from_start_s"][0] <= m["time_from_start_s"][1]
+    assert [m["severity"] for m in rep["mismatches"]] == sorted((m["severity"] for m in rep["mismatches"]),
+                                                                reverse=True)
     for m in rep["missing_physics"]:
         assert {"effect", "category", "explanation", "location", "frequency_hz", "parameters", "evidence"} <= set(m)
         assert m["category"] in CATEGORIES
@@ -55,6 +64,9 @@ def test_report_json_follows_the_public_schema(run):
     for r in rep["rejected"]:
         assert set(r) == {"effect", "why"} and r["why"]
     assert all(_num(v) for v in rep["updated_parameters"].values())
+    det = rep.get("parameter_details", {})
+    assert set(det) <= set(rep["updated_parameters"])
+    assert all(v["unit"] and _num(v["nominal"]) and (v["std"] is None or _num(v["std"])) for v in det.values())
 
 
 def test_concealed_scale_error_is_found_on_its_channel(run):
@@ -91,3 +103,5 @@ def test_html_report_renders_offline_in_headless_chromium(run, tmp_path):
     for sec in ("summary", "where", "tried", "chosen", "before-after"):
         assert f'id="{sec}"' in dom
     assert dom.count("data:image/png;base64,") >= 4
+    # the bags were read from a temporary directory: the report names them, never by that path
+    assert str(run.parent) not in html and "/tmp" not in html

@@ -34,6 +34,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
     p.add_argument("--no-analysis", action="store_true",
                    help="stop after the replay through the graph (skip step 3)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress on stderr (stage, count, ETA), here and in the update and diagnosis steps")
 
 
 def _check(bag: str) -> dict:
@@ -58,8 +60,6 @@ def _check(bag: str) -> dict:
 
 
 def run(args) -> int:
-    from maglev_ros.launch_graph import NodeSpec
-    from maglev_ros.launcher import launch
     from maglev_ros.replay_timing import check_rate
 
     if not os.path.exists(args.bag):
@@ -67,10 +67,21 @@ def run(args) -> int:
     check_rate(args.rate)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    print("== 1. recording and contract")
+    from maglev_ros.progress import for_cli
+    with for_cli(args.quiet, "demo") as progress:
+        return _run(args, out, progress)
+
+
+def _run(args, out: Path, progress) -> int:
+    from maglev_ros.launch_graph import NodeSpec
+    from maglev_ros.launcher import launch
+
+    progress.stage("1/3 recording and contract")
+    print("== 1. recording and contract", flush=True)
     recording = _check(args.bag)
 
-    print(f"== 2. replay through the node graph at {args.rate:g}x")
+    progress.stage(f"2/3 replay through the node graph at {args.rate:g}x")
+    print(f"== 2. replay through the node graph at {args.rate:g}x", flush=True)
     graph_json = out / "graph_summary.json"
     graph_json.unlink(missing_ok=True)
     env = dict(os.environ)
@@ -93,20 +104,22 @@ def run(args) -> int:
           else f"  messages missing on: {lost}")
     report = {"recording": recording, "graph": flow}
     if not args.no_analysis:
-        report["analysis"] = _analyse(args.bag, args.ambient, args.held_out or None, out)
+        report["analysis"] = _analyse(args.bag, args.ambient, args.held_out or None, out, progress, args.quiet)
     (out / "demo.json").write_text(json.dumps(report, indent=1))
     print(f"== done: {out / 'demo.json'}")
     return 0 if not lost else 1
 
 
-def _analyse(bag: str, ambient: str, held_out: str | None, out: Path) -> dict:
-    """Step 3: the offline verbs on the recordings, outputs under ``out``."""
+def _analyse(bag: str, ambient: str, held_out: str | None, out: Path, progress, quiet: bool = False) -> dict:
+    """Step 3: the offline verbs on the recordings, outputs under ``out``; the long ones (update,
+    diagnose) show their own progress under the demo's."""
     from maglev_ros.cli import main as cli
     if not os.path.exists(ambient):
         raise UserError(f"{ambient}: no such bag (the ambient recording for the modes)")
     if held_out and not os.path.exists(held_out):
         raise UserError(f"{held_out}: no such bag (the held-out pass for the diagnosis)")
     extra = ["--pass", held_out] if held_out else []
+    q = ["--quiet"] if quiet else []
     steps = [
         ("guideway modes (ambient)", ["modes", ambient, "--json", str(out / "modes.json"),
                                       "--plot", str(out / "stabilization.png")]),
@@ -117,17 +130,20 @@ def _analyse(bag: str, ambient: str, held_out: str | None, out: Path) -> dict:
                                  "--plot", str(out / "irregularity.png")]),
         ("model update (ambient + pass)", ["update", "--ambient", ambient, "--pass", bag,
                                            "--out", str(out / "params.json"),
-                                           "--plot", str(out / "update"), "--quiet"]),
+                                           "--plot", str(out / "update"), *q]),
         ("mismatch diagnosis", ["diagnose", "--ambient", ambient, "--pass", bag, *extra,
-                                "--out", str(out / "diagnosis")]),
+                                "--out", str(out / "diagnosis"), *q]),
     ]
     done = {}
+    progress.stage("3/3 offline analysis")      # no ETA: the steps take 1 s to minutes
     for k, (title, argv) in enumerate(steps, start=1):
+        progress.advance(0, note=f"3.{k} {title}")
         print(f"== 3.{k} {title}: maglev-ros {' '.join(argv)}", flush=True)
         code = cli(argv)
         if code != 0:
             raise UserError(f"step 3.{k} ({title}) failed with code {code}")
         done[title] = argv
+        progress.advance(note=f"3.{k} {title}")
     diag = json.loads((out / "diagnosis" / "report.json").read_text())
     print(f"== twin vs recording: NRMSE {diag['fit_before']['nrmse']:.3f} before, "
           f"{diag['fit_after']['nrmse']:.3f} after the accepted physics")

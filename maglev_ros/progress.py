@@ -339,6 +339,9 @@ class BarProgress(_Renderer):
     def _close(self) -> None:
         with self.lock:
             if self.bar is not None:
+                if not self.failed:          # the bar left on screen says the whole run, not its last stage
+                    self.bar.bar_format = "{desc}"
+                    self.bar.set_description_str(f"{self.label}: done in {format_s(self.clock() - self.t0_s)}")
                 self.bar.close()
             elif not self.failed:
                 for text in self._held:

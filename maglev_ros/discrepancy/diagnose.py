@@ -697,10 +697,18 @@ class Diagnoser:
         held_after, _ = fit_report(spec, rd_test)
         dbic = bic(rss, n_eff, 1) - bic0
 
-        def desc(p, sp, n=n, t0=t0, t1=t1):
-            return (f"Sensor {n} stops reporting between {t0:.2f} s and {t1:.2f} s (the value stays frozen): "
+        recs = _frozen_in(n, t0, t1, [rd.rec for rd in (*rd_train, *rd_test)])
+        # seconds from the start of the recording(s) holding it, when they agree on that
+        rel = ([t0 - recs[0].t0_s, t1 - recs[0].t0_s]
+               if recs and all(r.t0_s == recs[0].t0_s for r in recs) else None)
+
+        def desc(p, sp, n=n, t0=t0, t1=t1, rel=rel, names=" and ".join(r.name for r in recs)):
+            when = (f"{t0:.2f} s and {t1:.2f} s" if rel is None else
+                    f"{rel[0]:.2f} s and {rel[1]:.2f} s after the start of {names}")
+            return (f"Sensor {n} stops reporting between {when} (the value stays frozen): "
                     f"a dropout of the instrument or its data link, not a change of the structure.",
-                    {"channel": n, "kind": "dropout", "t0_s": t0, "t1_s": t1})
+                    {"channel": n, "kind": "dropout", "t0_s": t0, "t1_s": t1,
+                     **({} if rel is None else {"recording": names, "from_start_s": rel})})
         h = cat.Hypothesis("sensor_error", f"sensor_error@{n}.dropout", ("duration_s",), (0.0,), (np.inf,),
                            (t1 - t0,), lambda sp, p: spec, needs_sim=False,
                            location={"position_m": None, "span": None, "channels": [n]}, describe=desc)
@@ -1064,6 +1072,20 @@ def _mismatch_entries(found: Sequence[Mismatch], recs: Sequence[Recording | None
         out.append({**m.to_dict(), "recording": r.name if r is not None else _named(m.recording, recs),
                     "time_from_start_s": None if r is None else [m.time_s[0] - r.t0_s, m.time_s[1] - r.t0_s]})
     return out
+
+
+def _frozen_in(channel: str, t0_s: float, t1_s: float, recs: Sequence[Recording]) -> list[Recording]:
+    """The recordings whose ``channel`` holds a single value from t0_s to t1_s (a dropout found by
+    :func:`detect_dropouts`; several when their stamps coincide)."""
+    hits: dict[int, Recording] = {}
+    for r in recs:
+        c = r.channels.get(channel)
+        if c is None:
+            continue
+        i0, i1 = np.searchsorted(c.time_s, [t0_s, t1_s])
+        if i1 < c.time_s.size and c.time_s[i0] == t0_s and c.time_s[i1] == t1_s and np.ptp(c.values[i0:i1 + 1]) == 0:
+            hits[id(r)] = r
+    return list(hits.values())
 
 
 CAL_UNITS = {"youngs_modulus_pa": "Pa", "bearing_stiffness_n_per_m": "N/m", "kp_a_per_m": "A/m",

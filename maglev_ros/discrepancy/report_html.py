@@ -339,7 +339,7 @@ def _physics_param_rows(m: dict, recs: list) -> list[list]:
             break
     rows = []
     for k, v in params.items():
-        if isinstance(v, str) or isinstance(v, bool):
+        if isinstance(v, (str, bool, list, tuple)):
             continue
         unit, nominal = PHYSICS_PARAMS.get(k, (_unit_of(k), None))
         if k == "offset":
@@ -351,10 +351,15 @@ def _physics_param_rows(m: dict, recs: list) -> list[list]:
         elif k == "bearing_stiffness_n_per_m" and params.get("stiffness_factor"):
             nominal = v / params["stiffness_factor"]
         elif k in ("t0_s", "t1_s"):
-            hold = [r for r in recs if r.t0_s - 1e-6 <= v <= r.t1_s + 1e-6]
-            if len(hold) != 1:
-                continue
-            v, k = v - hold[0].t0_s, f"{k} (from the start of {_name(hold[0])})"
+            # stamps: shown from the start of their recording, or not at all
+            rel = params.get("from_start_s")
+            if rel is not None:
+                v, k = rel[k == "t1_s"], f"{k} (from the start of {params.get('recording')})"
+            else:
+                hold = [r for r in recs if r.t0_s - 1e-6 <= v <= r.t1_s + 1e-6]
+                if len(hold) != 1:
+                    continue
+                v, k = v - hold[0].t0_s, f"{k} (from the start of {_name(hold[0])})"
         elif nominal == "same":
             nominal = v
         if isinstance(v, dict):

@@ -103,10 +103,6 @@ def _img(src: str, alt: str) -> str:
     return f'<img src="{src}" alt="{html.escape(alt)}" class="plot"/>'
 
 
-def _name(rec) -> str:
-    return getattr(rec, "name", None) or str(rec.source)
-
-
 def _fmt(x, digits: int = 4) -> str:
     """``digits`` significant digits, without an exponent between 1e-3 and 1e6."""
     if x is None:
@@ -175,7 +171,7 @@ def _maps_figure(rmap, title: str):
             ax2 = ax.secondary_xaxis("top", functions=(lambda tt, pt=pt, px=px: np.interp(tt, pt, px),
                                                         lambda xx, pt=pt, px=px: np.interp(xx, px, pt)))
             ax2.set_xlabel("vehicle position [m]", fontsize=8)
-    axes[-1, 0].set_xlabel(f"time from the start of {_name(rd.rec)} [s]")
+    axes[-1, 0].set_xlabel(f"time from the start of {rd.rec.name} [s]")
     _severity_colorbar(fig, im, axes[:, 0], vmax)
     fig.suptitle(title)
     return fig
@@ -192,7 +188,7 @@ def _along_line(maps):
         tot = np.zeros(rd.grid.n_frames)
         for n in rd.rec.channels:
             tot += np.sum(np.where(m.flags[n], np.abs(m.severity[n]), 0.0), axis=1)
-        ax.semilogy(x, 1 + tot, ".-", label=_name(rd.rec))
+        ax.semilogy(x, 1 + tot, ".-", label=rd.rec.name)
     for s in (maps[0].rd.rec.metadata.get("line") or {}).get("spans", []):
         ax.axvline(s["start_m"], color="0.7", lw=0.8)
         ax.axvline(s["start_m"] + s["length_m"], color="0.7", lw=0.8)
@@ -261,7 +257,7 @@ def _residual_figure(rd, rd_after, name, mp_b, mp_a, wave_b, wave_a):
     ax.semilogy(t, _rms(am, 1), color="0.7", lw=1.0, label="measured (for scale)")
     ax.semilogy(t, _rms(rb, 1), color="C3", lw=1.2, label="residual before")
     ax.semilogy(t, _rms(ra, 1), color="C2", lw=1.2, label="residual after")
-    ax.set_xlabel(f"time from the start of {_name(rd.rec)} [s]")
+    ax.set_xlabel(f"time from the start of {rd.rec.name} [s]")
     ax.set_ylabel(f"RMS over bands [{unit}]")
     ax.set_title("band-amplitude residual per frame", fontsize=9)
     ax.legend(fontsize=7)
@@ -281,11 +277,11 @@ def _residual_figure(rd, rd_after, name, mp_b, mp_a, wave_b, wave_a):
         for w, c, lab in ((wave_b, "C3", "before"), (wave_a, "C2", "after")):
             tw, rw = _running_rms(ch.time_s - t0, w, WAVE_WINDOW_S)
             ax.semilogy(tw, rw, color=c, lw=1.2, label=f"residual {lab}")
-        ax.set_xlabel(f"time from the start of {_name(rd.rec)} [s]")
+        ax.set_xlabel(f"time from the start of {rd.rec.name} [s]")
         ax.set_ylabel(f"RMS per {WAVE_WINDOW_S:g} s [{unit}]")
         ax.set_title("waveform residual (measured - twin)", fontsize=9)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{name} on {_name(rd.rec)}: measured - twin, before and after")
+    fig.suptitle(f"{name} on {rd.rec.name}: measured - twin, before and after")
     fig.tight_layout()
     return fig, show_wave
 
@@ -300,11 +296,11 @@ def _recordings_rows(ex: dict) -> list[list]:
         role = ("training and held out (the only pass)" if same else
                 "training (calibration and fitting; the fastest pass)" if i == 0 else "held out (acceptance)")
         spd = np.abs(rec.speed_mps) if rec.speed_mps is not None and rec.speed_mps.size else None
-        rows.append([_name(rec), role, f"{rec.t1_s - rec.t0_s:.1f}",
+        rows.append([rec.name, role, f"{rec.t1_s - rec.t0_s:.1f}",
                      DASH if spd is None else f"{float(np.nanmean(spd)):.1f}", len(rec.channels)])
     amb = ex.get("rd_ambient")
     if amb is not None:
-        rows.append([_name(amb.rec), "ambient (no vehicle; noise and ambient vibration)",
+        rows.append([amb.rec.name, "ambient (no vehicle; noise and ambient vibration)",
                      f"{amb.rec.t1_s - amb.rec.t0_s:.1f}", DASH, len(amb.rec.channels)])
     return rows
 
@@ -318,7 +314,7 @@ def _mismatch_rows(rep: dict, recs: list) -> list[list]:
             # a report without those keys: the recording whose time span holds it, when only one does
             hold = [r for r in recs if r.t0_s - 1e-6 <= m["time_s"][0] <= r.t1_s + 1e-6]
             if len(hold) == 1:
-                rec_name, rel = _name(hold[0]), [m["time_s"][0] - hold[0].t0_s, m["time_s"][1] - hold[0].t0_s]
+                rec_name, rel = hold[0].name, [m["time_s"][0] - hold[0].t0_s, m["time_s"][1] - hold[0].t0_s]
         rows.append([rec_name or DASH, ", ".join(m["channels"]),
                      DASH if rel is None else f"{rel[0]:.2f}-{rel[1]:.2f}",
                      DASH if m["position_m"] is None else f"{m['position_m'][0]:.1f}-{m['position_m'][1]:.1f}",
@@ -359,7 +355,7 @@ def _physics_param_rows(m: dict, recs: list) -> list[list]:
                 hold = [r for r in recs if r.t0_s - 1e-6 <= v <= r.t1_s + 1e-6]
                 if len(hold) != 1:
                     continue
-                v, k = v - hold[0].t0_s, f"{k} (from the start of {_name(hold[0])})"
+                v, k = v - hold[0].t0_s, f"{k} (from the start of {hold[0].name})"
         elif nominal == "same":
             nominal = v
         if isinstance(v, dict):
@@ -376,13 +372,12 @@ def _parameter_rows(rep: dict) -> list[list]:
     det = rep.get("parameter_details") or {}
     rows = []
     for k, v in rep["updated_parameters"].items():
-        name, sym, unit, f = CALIBRATED.get(k, (k, "", (det.get(k) or {}).get("unit") or _unit_of(k), 1.0))
         d = det.get(k) or {}
+        name, sym, unit, f = CALIBRATED.get(k, (k, "", d.get("unit") or _unit_of(k), 1.0))
         nom, std = d.get("nominal"), d.get("std")
-        change = DASH if not nom else f"{(v / nom - 1) * 100:+.1f} %"
         rows.append([f"{name} ({sym})" if sym else name, k, unit, _fmt(None if nom is None else nom * f),
-                     _fmt(v * f), change, _fmt(None if std is None else std * f, 2) if std is not None
-                     else (f"{DASH} ({d['note']})" if d.get("note") else DASH)])
+                     _fmt(v * f), DASH if not nom else f"{(v / nom - 1) * 100:+.1f} %",
+                     _fmt(None if std is None else std * f, 2)])
     return rows
 
 
@@ -424,15 +419,15 @@ def render(diagnosis) -> str:
          "only cells flagged as a mismatch are coloured, by their severity.</p>"]
     maps = list(ex.get("maps_before", []))
     for m in maps:
-        w.append(_img(_png(_maps_figure(m, f"residual map of the calibrated twin: {_name(m.rd.rec)}")),
-                      f"residual map {_name(m.rd.rec)}"))
+        w.append(_img(_png(_maps_figure(m, f"residual map of the calibrated twin: {m.rd.rec.name}")),
+                      f"residual map {m.rd.rec.name}"))
     amb = ex.get("rd_ambient")
     if amb is not None and ex.get("base_spec") is not None:
         from .localize import residual_map
         try:
             am = residual_map(amb, model_powers(ex["base_spec"], amb))
-            w.append(_img(_png(_maps_figure(am, f"residual map of the calibrated twin: {_name(amb.rec)}")),
-                          f"residual map {_name(amb.rec)}"))
+            w.append(_img(_png(_maps_figure(am, f"residual map of the calibrated twin: {amb.rec.name}")),
+                          f"residual map {amb.rec.name}"))
         except Exception:        # no twin for a recording without line data: the table still lists it
             pass
     if maps:

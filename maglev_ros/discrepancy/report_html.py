@@ -21,7 +21,7 @@ import warnings
 import numpy as np
 
 from .evaluate import model_powers
-from .model import predict, reference_value
+from .model import predict
 from .recording import GROUP_UNIT, GROUPS
 
 DASH = "\u2014"

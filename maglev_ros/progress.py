@@ -4,8 +4,8 @@ The science core reports through a :class:`Progress` and never imports a UI libr
 ``progress.stage(name, total=None)`` when a named stage starts (``total``: the count of steps it
 will take, when known), ``progress.advance(n=1, note="")`` per finished step (a hypothesis, a
 simulation, a sample), ``progress.note(text)`` for a one-off message (what ``log=`` callbacks
-print) and ``progress.done()`` at the end; ``progress.steps(items)`` yields items and advances after each.
-The default :data:`NULL` does nothing.
+print) and ``progress.done()`` at the end; ``progress.steps(items)`` yields the items and
+advances after each. The default :data:`NULL` does nothing.
 
 The commands pick a renderer with :func:`for_cli`: nothing with ``--quiet``; a tqdm bar with the
 stage, count and ETA when stderr is a terminal; otherwise plain lines, throttled to one per

@@ -60,11 +60,13 @@ def _check(bag: str) -> dict:
 
 
 def run(args) -> int:
+    from maglev_ros.nodes import require_ros
     from maglev_ros.replay_timing import check_rate
 
     if not os.path.exists(args.bag):
         raise UserError(f"{args.bag}: no such bag")
     check_rate(args.rate)
+    require_ros()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     from maglev_ros.progress import for_cli
@@ -123,8 +125,7 @@ def _analyse(bag: str, ambient: str, held_out: str | None, out: Path, progress, 
     steps = [
         ("guideway modes (ambient)", ["modes", ambient, "--json", str(out / "modes.json"),
                                       "--plot", str(out / "stabilization.png")]),
-        # 0.8 Hz: the sample pass is 12.7 s long (the 0.2 Hz default needs ~16 s stretches)
-        ("irregularity (pass)", ["irregularity", bag, "--highpass-hz", "0.8",
+        ("irregularity (pass)", ["irregularity", bag,
                                  "--out", str(out / "irregularity.csv"),
                                  "--json", str(out / "irregularity.json"),
                                  "--plot", str(out / "irregularity.png")]),

@@ -75,3 +75,50 @@ def test_contract_travels_with_the_repo_and_readme_links_resolve():
             if "://" not in target:
                 assert (doc.parent / target).exists(), f"{doc.name}: broken link {target}"
         assert "../shared" not in doc.read_text(), f"{doc.name} points outside the repository"
+
+
+def _package_imports() -> dict[str, set[str]]:
+    """module -> maglev_ros modules it imports (top level or inside functions)."""
+    import ast
+    graph = {}
+    for p in (ROOT / "maglev_ros").rglob("*.py"):
+        rel = p.relative_to(ROOT).with_suffix("")
+        name = ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
+        pkg = name if rel.name == "__init__" else name.rsplit(".", 1)[0]
+        deps = set()
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parent = pkg.split(".")
+                    parent = parent[:len(parent) - node.level + 1]
+                    base = ".".join(parent + ([base] if base else []))
+                if base.startswith("maglev_ros"):
+                    deps.add(base)
+                    deps.update(f"{base}.{a.name}" for a in node.names)
+            elif isinstance(node, ast.Import):
+                deps.update(a.name for a in node.names if a.name.startswith("maglev_ros"))
+        graph[name] = deps
+    return {m: {d for d in deps if d in graph and d != m} for m, deps in graph.items()}
+
+
+def test_no_import_cycle_between_modules():
+    graph = _package_imports()
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(m, path):
+        state[m] = 1
+        for d in sorted(graph[m]):
+            if d.startswith(m + ".") or m.startswith(d + ".") and d == m.rsplit(".", 1)[0]:
+                continue                  # a package and its own submodules
+            if state.get(d) == 1:
+                cycles.append(path[path.index(d):] + [d])
+            elif d not in state:
+                visit(d, path + [d])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, cycles[:3]

@@ -35,6 +35,7 @@ from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_lo
 from maglev_ros.twin.spring_force import advance_with_spring_force
 from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
 
+from .attachment import attached_modal
 from .recording import Recording
 
 CAL_PARAMS = ("E", "kb", "kp", "kv")          # calibrated (log-scale factors)
@@ -54,7 +55,7 @@ class ModelSpec:
     carbody_bend_hz: float | None = None
     carbody_zeta: float = 0.02
     current_limit_a: float | None = None                    # saturation L [A] (magnet_nonlinearity)
-    resonator: Any = None                                   # discovery: added girder resonator (.resonator.Resonator)
+    resonator: Any = None                                   # discovery: added girder resonator (.attachment.Resonator)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
@@ -188,8 +189,8 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
         st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
         st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
     if spec.resonator is not None:
-        from .resonator import resonator_modal        # (resonator builds on this module)
-        st.modal = resonator_modal(spec.with_(resonator=None), spec.resonator)
+        st.modal = attached_modal(guideway_modal(spec.with_(resonator=None)), spec.resonator,
+                                  cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
         st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
         changed = True
     if spec.carbody_bend_hz is not None:

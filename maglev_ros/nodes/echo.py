@@ -14,9 +14,9 @@ import numpy as np
 import rclpy
 from rclpy.node import Node
 
-from maglev_ros.commands.echo import add_arguments
 from maglev_ros.errors import UserError
 from maglev_ros.nodes._common import message_class, qos_for
+from maglev_ros.nodes._echo_options import add_arguments
 
 
 def format_message(msg, full: bool = False) -> str:

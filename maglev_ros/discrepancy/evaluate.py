@@ -168,15 +168,17 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
         rd.quiet[n] = quiet
         ex = excl if ch.group.startswith("guideway") else np.zeros_like(excl)
         floor = fit_noise_floor(src[quiet], grid, masks[n], ex)
-        if src is not pm[n]:
-            # the residual's power law, extrapolated into bands where the quietest residual frames
-            # hold far less (measured on a held-out clean case: a gap floor fitted above 3 Hz put
-            # 10x the measured amplitude into the 0-3 Hz band, gap NRMSE 3.7 instead of 0.2), would
-            # call "noise" more than the channel measures at all: the floor never exceeds the mean
-            # power of the frames it was estimated from, nor the measured power of those frames
-            with np.errstate(invalid="ignore"):
-                cap = np.fmin(np.nanmean(src[quiet], axis=0), np.nanmean(pm[n][quiet], axis=0))
-            floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
+        # a power law extrapolated into bands where the quiet frames hold far less would call
+        # "noise" more than the channel measures at all (a gap floor fitted above 3 Hz put 10x the
+        # measured amplitude into the 0-3 Hz band; a magnet accelerometer's floor from frames of a
+        # slow pass put 4x it there): noise is part of what is measured, so in every band the
+        # floor never exceeds the mean measured power of the frames it was estimated from (nor,
+        # for the residual's floor, the residual's own mean power there)
+        with np.errstate(invalid="ignore"):
+            cap = np.nanmean(pm[n][quiet], axis=0) if quiet.any() else np.full(grid.n_bands, np.nan)
+            if src is not pm[n]:
+                cap = np.fmin(np.nanmean(src[quiet], axis=0), cap)
+        floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
         rd.noise[n] = floor
     for key, (a, g) in transmissibility_pairs(rec).items():
         ca, cg = rec.channels[a], rec.channels[g]

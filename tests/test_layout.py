@@ -122,3 +122,14 @@ def test_no_import_cycle_between_modules():
         if m not in state:
             visit(m, [m])
     assert not cycles, cycles[:3]
+
+
+def test_product_code_names_no_benchmark_or_validation_case():
+    """A rule must hold for any recording: case ids, benchmark splits and session numbers belong in
+    tests, benches and notes, never in the shipped code."""
+    pattern = re.compile(r"\b(tune|heldout|blind)( case| split)?\s+\d+\b|\b(tune|heldout|blind) split\b|"
+                         r"\bsession \d+\b|\bH\d\d\b|partner-sim", re.I)
+    hits = [f"{p.relative_to(ROOT)}:{i}: {line.strip()}"
+            for p in sorted((ROOT / "maglev_ros").rglob("*.py"))
+            for i, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
+    assert hits == [], hits[:5]

@@ -31,9 +31,9 @@ import numpy as np
 class AcceptanceConfig:
     min_rel_gain: float = 0.05
     # on the few channels an effect acts on (the magnets' own items) judged against the calibrated twin
-    # with kp, kv re-fitted there: clean tune cases gained nothing (-5 .. +1 %, session 11, with the
-    # magnets blended in the rail and the magnet items alone; 5.3-10.4 % in session 9 against the
-    # calibrated twin); their NRMSE there is 0.01-0.02, so the absolute margin is scaled to it
+    # with kp, kv re-fitted there: clean simulated cases gained nothing (-5 .. +1 %, with the
+    # magnets blended in the rail and the magnet items alone; 5.3-10.4 % against the calibrated
+    # twin alone); their NRMSE there is 0.01-0.02, so the absolute margin is scaled to it
     min_rel_gain_local: float = 0.10
     min_abs_gain: float = 0.005
     min_abs_gain_local: float = 0.001

@@ -10,7 +10,7 @@ d > 0 compresses it) and f the missing force per spring (upward on the frame, do
 as the linear spring's k d). Every candidate term of f is then one column per accelerometer, shared
 by all springs: cubic stiffening ``d^3`` and an asymmetric ``d^2`` (stiffer one way than the other).
 Velocity-squared damping ``d_rate*|d_rate|`` is in the library but not a default candidate: on 16
-generator cases with a cubic air spring and random design errors (session 15) it was co-selected with
+generator cases with a cubic air spring and random design errors it was co-selected with
 d^3 in 9 (negative coefficient), took two of them below the held-out gate (15/16 found without it,
 13/16 with it; clean cases 0/8 either way) and spread the reported band to 11-20 Hz. A re-fitted
 linear stiffness and damping (``d``, ``d_rate``) are always in the model, so a nonlinear term has to
@@ -20,19 +20,19 @@ fitted on the training pass and judged on the held-out passes.
 
 The regression reads the deflections off the LINEAR twin; a strong nonlinear force changes them (a
 stiffening spring deflects less), so the regression's law is biased low and can even fail the held-out
-gate (blind 41, cubic force 1.2x the linear one at the peak: held-out 0.199 with k, c re-fitted, 0.234
+gate (a cubic force 1.2x the linear one at the peak: held-out 0.199 with k, c re-fitted, 0.234
 with the regression's k3). A found law is therefore re-fitted with the twin SIMULATED with it
 (:mod:`maglev_ros.twin.spring_force`, ``ModelSpec.air_spring_force``): a fixed point that regresses the
-residual on the terms of the simulated deflections, 3 steps (blind 41: held-out 0.057; k3 6.1e9 vs truth
+residual on the terms of the simulated deflections, 3 steps (that case: held-out 0.057; k3 6.1e9 vs truth
 6.1e9), and the null (k, c re-fitted) alike; the gates are then judged on those simulated models. k3 itself
 carries the reconstructed rail's error cubed (the twin's largest deflection can be 2/3 of the truth's);
 the force at the largest deflection over the linear spring force there (``share_at_peak``) is the robust
-size (0.98-1.02 vs truth 0.97-1.13 on generator seeds 5/11, session 16).
+size (0.98-1.02 vs truth 0.97-1.13 on two generator seeds).
 
 Band 2-8 Hz, residual and terms through the same band-pass (a linear filter commutes with the
 regression). Below ~2 Hz the body residual is ruled by the reconstructed rail's long-wave error
 (the inertial reference is high-passed at 0.6 Hz): residual/measured 0.12-0.38 at 0.3-2 Hz against
-0.02-0.09 at 2-6 Hz on tune cases 20/21/40/41 and heldout 20/41 (session 15), and there a cubic term
+0.02-0.09 at 2-6 Hz on six simulated cases, clean and with a cubic spring, and there a cubic term
 "explained" a clean pass's rail error (train 0.78) that the other pass did not share (0.96). The
 upper part of a cubic force's band and its harmonics lie above 2 Hz; the air springs isolate the
 body above ~8 Hz (little signal left over the accelerometer noise).
@@ -201,7 +201,7 @@ class AirSpringTermFinder:
         :mod:`maglev_ros.twin.spring_force`): Gauss-Newton-like fixed point, each step regressing the
         training residual on the terms of the twin's own deflections with the current law, from
         ``start``; ``n_iter`` steps, the best training fit kept. The regression on the linear twin's
-        deflections is biased once the force changes the deflections (blind 41, cubic force 1.2x the
+        deflections is biased once the force changes the deflections (a cubic force 1.2x the
         linear one at the peak: regression held-out 0.234 vs 0.199 without it; simulated 0.057).
         Returns {"law", "rss", "n_eff", "heldout" (|residual| / |measured| over the held-out passes)}."""
         cols = [NAMES.index(k) for k in names]
@@ -289,7 +289,7 @@ class AirSpringTermFinder:
         chans = tuple(sorted({n for rd in rd_train for n, c in rd.rec.channels.items() if c.group == "body_accel"}))
         if terms and not (after <= twin * (1 - acc.min_rel_gain)):
             # the re-fitted k, c can fit the training pass's rail error and do worse than the twin on the
-            # held-out pass (tune 40: 0.059 -> 0.099): the nonlinear model must also beat the twin as is
+            # held-out pass (measured 0.059 -> 0.099): the nonlinear model must also beat the twin as is
             reasons.append(f"held-out error {twin:.3f} of the twin as calibrated -> {after:.3f} with the nonlinear "
                            f"force is not a clear improvement")
         nominal = {"d": _air_spring_stiffness(spec), "d_rate": _air_spring_stiffness(spec, "damping_n_s_per_m")}

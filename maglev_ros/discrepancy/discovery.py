@@ -49,8 +49,8 @@ from .localize import strong_cells
 # a guideway accelerometer's 0-3 Hz band is the quasi-static deflection under the passing vehicle (a
 # span crossing at 20-35 m/s takes 0.35-0.6 s) and waves longer than the reconstructed rail, below
 # every girder mode: a misfit there is no resonance an attached component could make, so no added
-# resonator is fitted to a finding wholly below this (tune case 26: the 0-3 Hz misfit of G2A was
-# the "finding" a resonator had to explain, fitted there at 13 % damping, while the 38 Hz
+# resonator is fitted to a finding wholly below this (measured: a guideway sensor's 0-3 Hz misfit
+# was the "finding" a resonator had to explain, fitted there at 13 % damping, while a 38 Hz
 # attachment showed at 37-44 Hz on the same span)
 RESONATOR_MIN_HZ = 3.0
 
@@ -311,7 +311,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                 break           # one modelled explanation per diagnosis (the strongest finding first)
             # an added mass explains the detuned mode; a resonator fitted to a band finding of the same
             # span may explain more (where its own frequency shows): tried, the better held-out fit wins
-            # (tune 26: the 38 Hz attachment as an added mass 1.2 m off, as a resonator 0.1 m off)
+            # (measured: a 38 Hz attachment placed 1.2 m off as an added mass, 0.1 m off as a resonator)
             only_span = d["location"]["span"]
     if worst_span_fallback and not any(rf.accepted for rf, _ in fits):
         # a local change can stay under the localization gates in every cell (a 10-30 % amplitude

@@ -70,7 +70,7 @@ def levitation_items(channels) -> Selection:
     ~17 % model error is the suspension's; a 1.2 x current saturation left them unchanged, 0.087 with and
     without, and diluted its signature 30-50 % -> 3 %) nor the gaps' frame means (ruled by waves
     longer than the reconstructed rail keeps: 0.19-0.21 on the slower pass with the reconstructed rail,
-    0.005-0.008 with the true one, tune case 28)."""
+    0.005-0.008 with the true one)."""
     return Selection(frozenset(channels), own=True, levels=False)
 
 

@@ -66,7 +66,7 @@ def _project(base: BaseFit, r: np.ndarray, rows: np.ndarray | None = None) -> tu
     """Re-fit calibrated parameters linearly: min ||r + J d||^2 + ||0.02 (th + d)/sigma||^2
     (``rows``: ``r`` holds only those rows of the residual vector, the vehicle channels', and only
     the levitation gains are re-fitted: those rows do not see E and kb, which then drifted freely
-    and moved the guideway, tune case 36)."""
+    and moved the guideway)."""
     cols = np.arange(base.theta.size) if rows is None else np.array(_GAINS)
     J = (base.jac if rows is None else base.jac[rows])[:, cols]
     lam = (0.02 / PRIOR_SIGMA) ** 2
@@ -239,8 +239,8 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
     ub = np.concatenate([[tr[0](hi)], CAL_HI[_GAINS]])
     z0 = np.clip(z0, lb + 1e-9, ub - 1e-9)
     if hyp.effect == "control_delay" and logp and hi > 1e-3:
-        # a delay the calibrated gains absorbed sits in another basin: kv has to rise with it (tune
-        # case 36, 6 ms: gains re-fitted at 2 / 4 ms cut the training RSS 0.034 -> 0.018, but from the
+        # a delay the calibrated gains absorbed sits in another basin: kv has to rise with it (a true
+        # 6 ms delay: gains re-fitted at 2 / 4 ms cut the training RSS 0.034 -> 0.018, but from the
         # 1-D search's 0.3 ms the joint fit never left it). Start from the best of a few delays with
         # kp, kv fitted at each.
         best = (float(np.sum(fun(z0) ** 2)), z0)
@@ -250,7 +250,7 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
                 return fun(np.concatenate([[tr[0](q)], g]))
             rg = None
             # from the calibrated gains, and where the twin is unstable there (a calibration that
-            # absorbed the delay by lowering kv: tune case 17, kv at its lower bound, unstable beyond
+            # absorbed the delay by lowering kv: kv at its lower bound, unstable beyond
             # 5.7 ms), from the design's kv
             for g0 in (z0[1:], np.array([z0[1], 0.0])):
                 try:
@@ -370,7 +370,7 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=No
     upper = stable_lag_limit(base.spec) if hyp.effect == "control_delay" else None
     # levitation physics (control, magnetic force) is fitted where it acts, on the vehicle channels:
     # fitted on every channel, the guideway sensors' own model error pulled a delay along its ridge
-    # with kv (tune case 36, 6 ms: fitted 4.3 ms with kv +62 %, guideway held-out NRMSE 0.13 -> 0.23,
+    # with kv (a true 6 ms: fitted 4.3 ms with kv +62 %, guideway held-out NRMSE 0.13 -> 0.23,
     # although the true delay and gains improved the whole held-out fit, 0.137 -> 0.128)
     rows = None
     if hyp.category in VEHICLE_WIDE and hyp.location.get("channels"):

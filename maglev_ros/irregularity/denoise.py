@@ -9,8 +9,8 @@ are not. The average of n magnets carries R + N / n, so the Wiener gain for it i
     G(k) = R / (R + N / n),   R = clip(C, 0, A),   N = A - R.
 
 Why: driven by the raw average, the twin saw a "rail" at 0.2-0.4 m wavelength that the magnets did
-not agree on (coherence 0.02-0.3 there, 1.00 at 2.6 m; discrepancy tune case 20, slow pass) and
-predicted 10-1000x the measured magnet acceleration at 60-110 Hz (session 7); a fixed low-pass would
+not agree on (coherence 0.02-0.3 there, 1.00 at 2.6 m, on a slow simulated pass) and
+predicted 10-1000x the measured magnet acceleration at 60-110 Hz; a fixed low-pass would
 also cut real short waves of a rough rail, which the magnets do agree on. The gain needs two or more
 magnets; with one the profile is returned unchanged. Hand-written: Welch spectra from scipy, the
 gain is one line; no library applies a multi-sensor coherence gain to a spatial profile.

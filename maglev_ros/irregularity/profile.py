@@ -64,8 +64,8 @@ magnets covering a point changes (the ends of each magnet's stretch: the rear ma
 stretch one vehicle length later) each magnet's weight ramps in and out over a quarter of the
 longest wavelength (raised cosine, :func:`_coverage_weights`; ``blend_coverage``, on by default): the plain mean
 jumped there by half
-the magnets' long-wave difference (240 um at 20 m behind the start of the stretch, discrepancy tune
-case 33), and every twin magnet crossing that step drew a 3 A current spike.
+the magnets' long-wave difference (240 um at 20 m behind the start of the stretch, on a simulated
+pass), and every twin magnet crossing that step drew a 3 A current spike.
 
 Streaming: :class:`IncrementalProfiler` processes overlapping time windows as blocks arrive, keeps
 only the window (bounded memory for the signals) and accumulates per-magnet bin sums; its

@@ -67,7 +67,7 @@ def jacobian(func: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, step: 
 
 # a parameter combination is called identifiable when the data determine it to 1 % (1 sigma): the
 # accuracy the updating is held to for combinations (2 %, at 2 sigma). With the single gains' 2.5 % a
-# weak magnet combination with std 2.3 % was reported and came out 2.8 % off (issue 6, session 12)
+# weak magnet combination with std 2.3 % was reported and came out 2.8 % off
 COMBINATION_MAX_REL_STD = 0.01
 
 

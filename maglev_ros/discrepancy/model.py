@@ -62,6 +62,8 @@ class ModelSpec:
     dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
     air_spring_force: tuple[tuple[str, float], ...] = ()    # (term of AIR_SPRING_TERMS, coefficient SI) per air spring
     dt_max_s: float | None = None
+    # Rayleigh damping ratio on modes 1-2 of every span as measured (calibrate stage); None: the design's
+    guideway_damping_ratio: float | None = None
 
     def with_(self, **kw) -> "ModelSpec":
         return replace(self, **kw)
@@ -84,6 +86,8 @@ class ModelSpec:
             e = fe * (self.span_e_factor[i] if i < len(self.span_e_factor) else 1.0)
             p = replace(s.props, youngs_modulus_pa=s.props.youngs_modulus_pa * e,
                         bearing_stiffness_n_per_m=s.props.bearing_stiffness_n_per_m * fk)
+            if self.guideway_damping_ratio is not None:
+                p = replace(p, damping_ratio=float(self.guideway_damping_ratio))
             out.append(replace(s, props=p))
         return tuple(out)
 

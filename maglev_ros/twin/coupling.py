@@ -280,14 +280,12 @@ class TwinStepper:
         OD = np.vstack([ss.out_z[1], ss.out_zd[1], ss.out_acc[1], ss.out_dcurrent[1]])
         # linear force F_lin = F0 + Lx x + Lu u
         p = lev.partials()
-        if not ss.has_coil:
-            kg, cg, ma = p.df_dgap_n_per_m, p.df_dgap_rate_n_s_per_m, -p.df_daccel_n_s2_per_m
-            Lx = -(kg[:, None] * ss.out_z[0]) - cg[:, None] * ss.out_zd[0] - ma[:, None] * ss.out_acc[0]
-            Lu = np.hstack([np.diag(kg), np.diag(cg), np.eye(m)]) - ma[:, None] * ss.out_acc[1]
-        else:
-            ki, kgap = p.df_dcurrent_n_per_a, -p.df_dgap_fixed_current_n_per_m
-            Lx = ki[:, None] * ss.out_dcurrent[0] + kgap[:, None] * ss.out_z[0]
-            Lu = np.hstack([-np.diag(kgap), np.zeros((m, m)), np.eye(m)])
+        # F_lin - F0 = ki dI - kgap (y - z_m) + N, dI = out_dcurrent (C x + D u): one form for the plain
+        # law, coil dynamics and a delayed law
+        ki, kgap = p.df_dcurrent_n_per_a, -p.df_dgap_fixed_current_n_per_m
+        Lx = ki[:, None] * ss.out_dcurrent[0] + kgap[:, None] * ss.out_z[0]
+        Lu = (ki[:, None] * ss.out_dcurrent[1]
+              + np.hstack([-np.diag(kgap), np.zeros((m, m)), np.eye(m)]))
         self._O, self._OD = np.ascontiguousarray(O), np.ascontiguousarray(OD)
         self._OL = np.ascontiguousarray(np.vstack([O, Lx]))          # (5m, nx)
         self._G = np.ascontiguousarray(O @ Bd1 + OD)                  # (4m, 3m)
@@ -322,12 +320,9 @@ class TwinStepper:
             zm = ss.out_z[0] @ x
             # only static linear stiffness matters here
             p = self.vehicle.levitation.partials()
-            if ss.has_coil:
-                dI = ss.out_dcurrent[0] @ x
-                F = self.vehicle.levitation.static_force_n + p.df_dcurrent_n_per_a * dI \
-                    + p.df_dgap_fixed_current_n_per_m * (y - zm)
-            else:
-                F = self.vehicle.levitation.static_force_n + p.df_dgap_n_per_m * (y - zm)
+            dI = ss.out_dcurrent[0] @ x + ss.out_dcurrent[1] @ np.concatenate([y, np.zeros(2 * m)])
+            F = self.vehicle.levitation.static_force_n + p.df_dcurrent_n_per_a * dI \
+                + p.df_dgap_fixed_current_n_per_m * (y - zm)
         self._q = q
         self._x = x
         self._u = np.concatenate([y, np.zeros(2 * m)])

@@ -124,6 +124,9 @@ class LevitationDesign(_Dict):
     ka_a_s2_per_m: float
     coil_inductance_h: float = 0.0
     coil_resistance_ohm: float = 1.0
+    # transport delay of the control law (sampling, filters, bus): the current follows the law's
+    # value control_delay_s earlier (twin/levitation.py: a (2,2) Pade all-pass)
+    control_delay_s: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,13 @@ i.e. the current lags the control law with time constant L/R. The gap-rate term 
 inductance change (back-EMF, 001 Eq. 9) is neglected: a careful simplification for a current-fed
 chopper, stated here because the paper's equation text was lost.
 
+Optional transport delay (``control_delay_s`` tau > 0, without coil dynamics): a digital controller
+acts on measurements tau old, I(t) = law(t - tau). exp(-s tau) is realised per magnet by the (2,2)
+Pade all-pass (1 - s tau/2 + (s tau)^2/12) / (1 + s tau/2 + (s tau)^2/12) = 1 - s tau / D(s): two
+states xi, I = law - tau xi_2, a2 xi_2' = law - xi_1 - a1 xi_2, xi_1' = xi_2 (a1 = tau/2,
+a2 = tau^2/12). Its gain is exactly 1 and its phase within 2 % of -w tau up to w tau = 2 (a
+first-order lag, the coil's, instead halves the gain there: a 2.5 ms delay acts at 60-120 Hz).
+
 Linearisation about the static state: dF = kI dI - kgap dgap, kI = 2 F0 / I0, kgap = 2 F0 / g0.
 Without coil dynamics dF = k_g dgap + c_g dgap' - m_a a_m with k_g = kI kp - kgap, c_g = kI kv,
 m_a = kI ka. ``closed_loop`` builds the linear state space x' = A x + B [y; y'; N] of the vehicle
@@ -55,6 +62,7 @@ class LevitationModel:
     coil_resistance_ohm: float
     static_force_n: np.ndarray     # (n_mag,)
     force_coeff: np.ndarray        # C (n_mag,) [N m^2 / A^2]
+    control_delay_s: float = 0.0
 
     @classmethod
     def from_design(cls, d: LevitationDesign, static_force_n: np.ndarray) -> "LevitationModel":
@@ -63,8 +71,11 @@ class LevitationModel:
             raise UserError(f"vehicle: static equilibrium needs a non-positive (pushing) force on magnet(s) "
                             f"{(np.flatnonzero(f0 <= 0) + 1).tolist()}; check masses and x positions")
         c = f0 * d.nominal_gap_m ** 2 / d.static_current_a ** 2
+        if d.control_delay_s < 0 or (d.control_delay_s > 0 and d.coil_inductance_h > 0):
+            raise UserError(f"levitation: control_delay_s must be >= 0 and is available without coil dynamics "
+                            f"only (coil_inductance_h 0), got {d.control_delay_s} s with {d.coil_inductance_h} H")
         return cls(d.nominal_gap_m, d.static_current_a, d.kp_a_per_m, d.kv_a_s_per_m, d.ka_a_s2_per_m,
-                   d.coil_inductance_h, d.coil_resistance_ohm, f0, c)
+                   d.coil_inductance_h, d.coil_resistance_ohm, f0, c, float(d.control_delay_s))
 
     @property
     def has_coil(self) -> bool:
@@ -89,7 +100,7 @@ class LevitationModel:
 
 @dataclass(frozen=True)
 class VehicleStateSpace:
-    """x' = A x + B u, u = [y (n_mag), y' (n_mag), N (n_mag)]; x = [z, z', (dI)].
+    """x' = A x + B u, u = [y (n_mag), y' (n_mag), N (n_mag)]; x = [z, z', (dI | xi_1, xi_2)].
 
     Output maps (x, u) -> per-magnet quantities: ``out_*`` = (C, D) pairs, value = C x + D u.
     """
@@ -120,6 +131,8 @@ def closed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpac
     p = lev.partials()
     Z = np.zeros
     I_n = np.eye(n)
+    if lev.control_delay_s > 0:
+        return _delayed_loop(vehicle, lev)
     if not lev.has_coil:
         kg, cg, ma = p.df_dgap_n_per_m, p.df_dgap_rate_n_s_per_m, -p.df_daccel_n_s2_per_m
         Mp = M + Bm @ np.diag(ma) @ Bm.T
@@ -163,6 +176,37 @@ def closed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpac
     zero_d = Z((m, 3 * m))
     return VehicleStateSpace(A, B, n, m, True, (cz, zero_d), (czd, zero_d), (ca, da), (ci_state, zero_d),
                              (acc_x, acc_u))
+
+
+def _delayed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpace:
+    """Closed loop with the control law's transport delay (module docstring): x = [z, z', xi_1, xi_2]."""
+    n, m = vehicle.n_dof, vehicle.n_magnets
+    M, C, K, Bm = vehicle.mass, vehicle.damping, vehicle.stiffness, vehicle.magnet_input
+    p = lev.partials()
+    Z = np.zeros
+    tau = lev.control_delay_s
+    a1, a2 = tau / 2.0, tau * tau / 12.0
+    kg, cg, ma, ki = p.df_dgap_n_per_m, p.df_dgap_rate_n_s_per_m, -p.df_daccel_n_s2_per_m, p.df_dcurrent_n_per_a
+    # F - F0 = kg dgap + cg dgap' - ma a_m + N - ki tau xi_2 (the law through the force, less the all-pass part)
+    Mp = M + Bm @ np.diag(ma) @ Bm.T
+    Mi = np.linalg.inv(Mp)
+    Kp = K + Bm @ np.diag(kg) @ Bm.T
+    Cp = C + Bm @ np.diag(cg) @ Bm.T
+    acc_x = np.hstack([-Mi @ Kp, -Mi @ Cp, Z((n, m)), -Mi @ Bm @ np.diag(ki * tau)])
+    acc_u = np.hstack([Mi @ Bm @ np.diag(kg), Mi @ Bm @ np.diag(cg), Mi @ Bm])
+    cz = np.hstack([Bm.T, Z((m, n)), Z((m, 2 * m))])
+    czd = np.hstack([Z((m, n)), Bm.T, Z((m, 2 * m))])
+    ca, da = Bm.T @ acc_x, Bm.T @ acc_u
+    sel_y = np.hstack([np.eye(m), Z((m, 2 * m))])
+    sel_yd = np.hstack([Z((m, m)), np.eye(m), Z((m, m))])
+    xi1 = np.hstack([Z((m, 2 * n)), np.eye(m), Z((m, m))])
+    xi2 = np.hstack([Z((m, 2 * n)), Z((m, m)), np.eye(m)])
+    law_x = -lev.kp_a_per_m * cz - lev.kv_a_s_per_m * czd - lev.ka_a_s2_per_m * ca
+    law_u = lev.kp_a_per_m * sel_y + lev.kv_a_s_per_m * sel_yd - lev.ka_a_s2_per_m * da
+    A = np.vstack([np.hstack([Z((n, n)), np.eye(n), Z((n, 2 * m))]), acc_x, xi2, (law_x - xi1 - a1 * xi2) / a2])
+    B = np.vstack([Z((n, 3 * m)), acc_u, Z((m, 3 * m)), law_u / a2])
+    return VehicleStateSpace(A, B, n, m, False, (cz, Z((m, 3 * m))), (czd, Z((m, 3 * m))), (ca, da),
+                             (law_x - tau * xi2, law_u), (acc_x, acc_u))
 
 
 @dataclass(frozen=True)

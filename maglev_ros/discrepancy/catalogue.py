@@ -7,7 +7,7 @@ plausible, and how to say it to a rail engineer.
 | effect | category | parameter | signature |
 |---|---|---|---|
 | bearing_stiffness | boundary_condition | log10 kb factor of one span end | that span's mode lower, larger response near that end, mostly when the vehicle is there |
-| control_delay | control | lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line |
+| control_delay | control | transport delay or first-order lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line; above 1/(2 pi tau) a delay turns the phase, a lag attenuates |
 | magnet_nonlinearity | magnetic_force | current headroom L / peak demand | saturating current (I0 + L tanh((I-I0)/L)): extra gap excursions where demand is high |
 | ambient_excitation | excitation | log10 modal force PSD | guideway vibration at its modes before entry and after exit (no vehicle) |
 | girder_stiffness_loss | guideway_structure | relative EI loss of one span | that span deflects more, its modes drop |
@@ -60,6 +60,7 @@ class Hypothesis:
     describe: Callable[[np.ndarray, ModelSpec], tuple[str, dict]] = lambda p, s: ("", {})
     band_hz: tuple[float, float] | None = None
     log_search: bool = False                     # scale-like parameter: search on a geometric grid
+    form: str = ""                               # one of several models of the same effect (control_delay)
 
     @property
     def category(self) -> str:
@@ -141,33 +142,45 @@ def bearing_hypotheses(spec: ModelSpec) -> list[Hypothesis]:
     return out
 
 
-MIN_CONTROL_DELAY_S = 2e-3     # shorter fitted delays are no separate finding (see control_delay_hypothesis)
+MIN_DELAY_SAMPLES = 1.0   # a fitted delay shorter than one sample period of the vehicle channels is no finding
 
 
-def control_delay_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
+CONTROL_DELAY_FORMS = ("delay", "lag")   # transport delay of the law, first-order lag of the current
+
+
+def control_delay_hypothesis(vehicle_channels: list[str], form: str = "delay", sample_rate_hz: float = 1000.0) -> Hypothesis:
+    """The levitation current late on the control law: ``form`` "delay" (a transport delay, what a
+    digital controller's sampling, filters and bus give) or "lag" (a first-order lag, what a coil's
+    L/R gives). Both are fitted: they differ where w tau ~ 1, and which one the data follow is evidence.
+    ``sample_rate_hz``: of the vehicle channels (the shortest delay that counts is one sample)."""
+    min_delay_s = MIN_DELAY_SAMPLES / float(sample_rate_hz)
+    if form not in CONTROL_DELAY_FORMS:
+        raise ValueError(f"control_delay form: expected one of {CONTROL_DELAY_FORMS}, got {form!r}")
+
     def apply(sp, p):
-        return sp.with_(control_lag_s=max(float(p[0]), 0.0))
+        v = max(float(p[0]), 0.0)
+        return sp.with_(control_delay_s=v) if form == "delay" else sp.with_(control_lag_s=v)
 
     def plaus(p):
-        if p[0] < MIN_CONTROL_DELAY_S:
-            # a digital levitation controller's own sampling and filter lag (a few cycles at 1-2 kHz plus
-            # the gap sensor's filter) belongs to the calibrated loop, whose gains absorb a lag that short:
-            # on clean simulated cases driven by the long-wave rail delays of 1.2-1.4 ms were fitted
-            # with 6-7 % held-out gains on the vehicle channels, while real 4-10 ms delays came out at
-            # 3.1-5.6 ms with 29-76 % gains there
-            return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below {MIN_CONTROL_DELAY_S * 1e3:.0f} ms "
-                           "(within the controller's own lag)")
+        if p[0] < min_delay_s:
+            # a lag shorter than one sample of the recording is what a digital controller's own
+            # sample-and-hold gives, and the recording cannot resolve it: the calibrated gains absorb it
+            return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below one sample period of the vehicle channels "
+                           f"({min_delay_s * 1e3:.2f} ms: within the controller's own lag)")
         if p[0] > 0.025:
             return False, f"fitted delay {p[0] * 1e3:.0f} ms is longer than any levitation controller allows"
         return True, ""
 
     def desc(p, sp):
-        return (f"The levitation control acts on measurements about {p[0] * 1e3:.1f} ms old (sensor filtering, "
-                f"bus and chopper latency): the magnets follow the rail less tightly, so gap and magnet "
-                f"acceleration differ from the twin all along the line.", {"delay_s": float(p[0])})
-    return Hypothesis("control_delay", "control_delay", ("delay_s",), (2.5e-4,), (0.03,), (0.006,), apply,
+        how = ("acts on measurements about {:.1f} ms old (sensor filtering, sampling, bus latency)" if form == "delay"
+               else "current lags the control law with a time constant of about {:.1f} ms (coil, chopper)")
+        return (f"The levitation control {how.format(p[0] * 1e3)}: the magnets follow the rail less tightly, "
+                f"so gap and magnet acceleration differ from the twin all along the line.",
+                {"delay_s": float(p[0]), "form": "transport delay" if form == "delay" else "first-order lag"})
+    label = "control_delay" if form == "delay" else "control_delay.lag"
+    return Hypothesis("control_delay", label, ("delay_s",), (2.5e-4,), (0.03,), (0.006,), apply,
                       location={"position_m": None, "span": None, "channels": vehicle_channels},
-                      plausible=plaus, describe=desc, log_search=True)
+                      plausible=plaus, describe=desc, log_search=True, form=form)
 
 
 def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:

@@ -39,6 +39,7 @@ from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
 from .acceptance import REST_WORSE, AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .air_springs import AirSpringTermFinder
+from .damping import measure_damping
 from .discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
 from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
                        residual_rows, residual_vector, split_frames)
@@ -135,7 +136,12 @@ class Diagnoser:
         # excitation is then checked where it must extrapolate downwards (fitted on a slower pass a
         # saturation limit was unconstrained and over-saturated the fast held-out pass)
         passes = sorted(passes, key=lambda p: -_mean_speed_mps(p))
-        base0 = base_spec(passes[0].metadata, cfg.n_elements).with_(dt_max_s=cfg.dt_max_s)
+        nominal = base_spec(passes[0].metadata, cfg.n_elements).with_(dt_max_s=cfg.dt_max_s)
+        # what the recordings measure directly is set before anything is fitted: the girder's
+        # damping from the ambient recording's modes (a fitted E or kb cannot make up for it)
+        damping = measure_damping(ambient, nominal)
+        base0 = (nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied
+                 else nominal)
         same_heldout = len(passes) == 1
         notes: list[str] = []
         if not same_heldout:
@@ -214,7 +220,7 @@ class Diagnoser:
         flagged = {span_of[c] for m in [m for m in found if m.group.startswith("guideway")][:3]
                    for c in m.channels if c in span_of}
         for _, h in (screened[cfg.n_top:] if cfg.fit_every_effect else []):
-            if h.effect not in {p.effect for p in phys} or h.location.get("span") in flagged:
+            if (h.effect, h.form) not in {(p.effect, p.form) for p in phys} or h.location.get("span") in flagged:
                 phys.append(h)
         cands = phys + cheap
         fits: list[tuple[HypFit, Verdict, float]] = []
@@ -605,7 +611,10 @@ class Diagnoser:
             "missing_physics": missing,
             "rejected": rejected,
             "updated_parameters": final_spec.calibrated_values(),
-            "parameter_details": _parameter_details(base0, final_spec),
+            "parameter_details": _parameter_details(nominal, final_spec),
+            "calibration": {"parameters": base.spec.calibrated_values(), "damping": damping.to_dict(),
+                            "fit_per_group": _per_group(pc_before, {n: c.group for rd in rd_all
+                                                                    for n, c in rd.rec.channels.items()})},
         }
         if disc:
             report["discovery"] = [d for d in disc]
@@ -630,7 +639,8 @@ class Diagnoser:
         gw = rec.names("guideway_accel") + rec.names("guideway_disp")
         hyps = cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
         if veh:
-            hyps.append(cat.control_delay_hypothesis(veh))
+            fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
+            hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
             demand = _current_demand_a(spec, rds)
             if demand > 0:
                 hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,

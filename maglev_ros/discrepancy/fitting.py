@@ -101,7 +101,7 @@ def screen(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> float:
         return fit_sensor(base, hyp, rds).rss
     trial = np.array(hyp.trial, dtype=float)
     if hyp.effect == "control_delay":
-        trial[0] = min(trial[0], 0.5 * stable_lag_limit(base.spec))
+        trial[0] = min(trial[0], 0.5 * stable_lag_limit(base.spec, hyp))
     sp = hyp.apply(base.spec, trial)
     r = safe_residual(sp, rds)
     if r is None:
@@ -234,7 +234,7 @@ def _joint_refine(base: BaseFit, hyp: Hypothesis, rds: list[RecData], p0: float,
         # the gains move in this fit: the delay may go up to what the most stable gains allow
         th = th0.copy()
         th[_GAINS] = [CAL_LO[_GAINS[0]], CAL_HI[_GAINS[1]]]
-        hi = max(hi, min(hyp.upper[0], stable_lag_limit(base.spec.with_(cal=tuple(float(x) for x in th)))))
+        hi = max(hi, min(hyp.upper[0], stable_lag_limit(base.spec.with_(cal=tuple(float(x) for x in th)), hyp)))
     lb = np.concatenate([[tr[0](lo * 1.0001 if logp else lo)], CAL_LO[_GAINS]])
     ub = np.concatenate([[tr[0](hi)], CAL_HI[_GAINS]])
     z0 = np.clip(z0, lb + 1e-9, ub - 1e-9)
@@ -304,15 +304,15 @@ def fit_gains(base: BaseFit, rds: list[RecData], rows: np.ndarray, max_nfev: int
     return _with_cal(base.spec, th)
 
 
-def stable_lag_limit(spec: ModelSpec) -> float:
-    """Largest first-order control lag [s] for which the calibrated levitation stays stable (98 %
+def stable_lag_limit(spec: ModelSpec, hyp: Hypothesis) -> float:
+    """Largest control delay [s] of ``hyp``'s form for which the calibrated levitation stays stable (98 %
     of the limit: a geometric scan, then bisection; the scan's 20 % steps alone, less 10 %, left
     an 8 ms truth outside the searched range)."""
     from maglev_ros.twin.levitation import build_vehicle
 
     def stable(lag):
         try:
-            poles = build_vehicle(spec.with_(control_lag_s=float(lag)).effective_config()).state_space.poles()
+            poles = build_vehicle(hyp.apply(spec, np.array([float(lag)])).effective_config()).state_space.poles()
         except Exception:
             return False
         return bool(np.max(poles.real) < -1e-3)
@@ -367,7 +367,7 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=No
         return fit_sensor(base, hyp, rds)
     if hyp.effect == "ambient_excitation":
         return fit_ambient(base, hyp, rds)
-    upper = stable_lag_limit(base.spec) if hyp.effect == "control_delay" else None
+    upper = stable_lag_limit(base.spec, hyp) if hyp.effect == "control_delay" else None
     # levitation physics (control, magnetic force) is fitted where it acts, on the vehicle channels:
     # fitted on every channel, the guideway sensors' own model error pulled a delay along its ridge
     # with kv (a true 6 ms: fitted 4.3 ms with kv +62 %, guideway held-out NRMSE 0.13 -> 0.23,

@@ -10,9 +10,11 @@ pieces, without changing the twin files:
   stiffness per end) replaces the span FE models of the stepper's ``Guideway``;
 - car-body bending: :func:`flexible_vehicle` adds one free-free bending DOF of the car body to the
   twin's assembled rigid 18-DOF ``VehicleModel`` (secondary springs see psi(x) eta);
-- control delay: the levitation current lags the control law by a first-order lag with time
-  constant tau (``coil_inductance_h = tau R``: the twin's coil-dynamics hook), the first-order
-  Pade-free approximation of a pure delay, exact to O((w tau)^2) at the levitation frequencies;
+- control delay, two forms: a transport delay (the law acts on measurements tau old: sampling,
+  filters, bus; ``LevitationDesign.control_delay_s``, a (2,2) Pade all-pass in the twin) and a
+  first-order lag of the current behind the law (``coil_inductance_h = tau R``: the coil's own
+  time constant); they agree to O((w tau)^2) at the levitation frequencies and differ above
+  1/(2 pi tau), where the lag attenuates and the delay only turns the phase;
 - magnet nonlinearity: smooth current saturation I0 + L tanh((I - I0)/L) in the twin's force
   kernel (``TwinStepper(current_limit_a=L)``, :mod:`maglev_ros.twin.coupling`);
 - nonlinear air springs (discovery): a force law f(d, d_rate) per secondary air spring, added by
@@ -51,7 +53,8 @@ class ModelSpec:
     cal: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)          # ln factors of CAL_PARAMS
     span_e_factor: tuple[float, ...] = ()                   # per span (girder_stiffness_loss)
     bearing_factor: tuple[tuple[float, float], ...] = ()    # per span (left, right) kb factors
-    control_lag_s: float = 0.0
+    control_lag_s: float = 0.0                              # first-order lag of the current [s]
+    control_delay_s: float = 0.0                            # transport delay of the control law [s]
     carbody_bend_hz: float | None = None
     carbody_zeta: float = 0.02
     current_limit_a: float | None = None                    # saturation L [A] (magnet_nonlinearity)
@@ -97,6 +100,8 @@ class ModelSpec:
                               kv_a_s_per_m=lev.kv_a_s_per_m * self.cal_factor("kv"))
         if self.control_lag_s > 0:
             cfg = with_levitation(cfg, coil_inductance_h=self.control_lag_s * cfg.levitation.coil_resistance_ohm)
+        if self.control_delay_s > 0:
+            cfg = with_levitation(cfg, control_delay_s=float(self.control_delay_s))
         if self.dt_max_s is not None:
             cfg = replace(cfg, numerics=replace(cfg.numerics, dt_max_s=self.dt_max_s))
         return cfg

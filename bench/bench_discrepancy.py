@@ -1,10 +1,15 @@
-"""Benchmark of the discrepancy diagnosis on concealed-effect cases (tests/discrepancy_cases.py).
+"""Benchmark of the discrepancy diagnosis on concealed-effect cases (tests/discrepancy_cases.py) and on
+the partner's simulator recordings (``--partner``).
 
 Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|both] [--jobs 2] [--limit N]
        [--only EFFECT,...] [--json OUT]   (cases are written to OUT as they finish)
+       .venv/bin/python bench/bench_discrepancy.py --partner [DIR] [--passes 1|2|both] [--cases ID,...]
+       [--jobs 2] [--json OUT]            (with --split too: our splits first, then the partner's cases)
        .venv/bin/python bench/bench_discrepancy.py --table OUT   (tables of a saved, even partial, run)
+       .venv/bin/python bench/bench_discrepancy.py --table REPORTS_DIR --passes 1|2 [--partner DIR]
+                                          (partner tables of a folder of <ID>.json diagnosis reports)
 
-Per effect: cases, correct effect, wrong effect, missed, localization error (girder/bearing: |reported
+Our splits, per effect: cases, correct effect, wrong effect, missed, localization error (girder/bearing: |reported
 place centre - true place| in m; sensor_error: share with the right channel), median held-out NRMSE
 reduction over the whole recording and on the effect's own channels (``heldout_on_its_channels``),
 cases naming a further effect besides the concealed one (+extra) (a missed effect counts as zero gain);
@@ -17,6 +22,24 @@ a catalogue name (must be 0). The "heldout" split uses seeds,
 speeds, FE mesh, noise colour, anti-alias filter and controller lag never used while tuning (its cases
 were inspected in session 5); the "blind" split (session 6) also other PSDs, locations and magnitudes,
 and is never tuned on. "both" = tune + heldout.
+
+Partner cases (``--partner``): recordings of an independent simulator with their truth (README.md beside
+them); DIR defaults to ../shared/validation/partner-sim next to the repository, and the partner's own
+scorer (score.py beside DIR) judges every report, imported as it is. Each case is diagnosed as the CLI
+does: one pass = ``diagnose --ambient C/ambient --pass C/pass``; two passes = the same with
+``--pass C/pass2`` added (held out). One table per pass mode, one row per concealed effect (a case
+concealing two effects counts in both rows; "clean" = cases with none):
+  right       the scorer finds the effect (its name, or its category when it is out of catalogue, at
+              the right place);
+  misplaced   an entry carries that name/category but at a place the scorer does not accept;
+  missed      no entry carries that name/category;
+  wrong phys. cases with a missing_physics entry whose name/category is not one of the concealed ones;
+  fit ok      cases with fit_after <= 0.7 fit_before (the scorer's second condition);
+  passed      cases the scorer passes (every effect right and fit ok; clean: nothing reported);
+  fit gain    median of 1 - fit_after/fit_before (whole recording, all passes);
+clean row: false alarms = clean cases with any missing_physics entry. Then the scorer's "k of N
+passed", a per-case listing (verdict, fit ratio, the scorer's reason line) and one summary line per
+pass mode.
 """
 from __future__ import annotations
 
@@ -27,6 +50,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -249,25 +273,258 @@ def _floor(results) -> dict | None:
             "gain": float(np.median((b - a) / b)), "achievable": float(np.median(np.clip((b - fl) / b, 0, 1)))}
 
 
+# ---- partner simulator cases ------------------------------------------------------------------
+
+PARTNER_DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "validation" / "partner-sim"
+PASS_MODES = {1: "1 pass", 2: "2 passes"}
+
+
+def _partner_dir(arg: str | None) -> Path:
+    """The partner-sim folder (``arg`` or the default beside the repository), checked: a one-line
+    error (exit 2) when it or the scorer beside it is missing."""
+    d = Path(arg).expanduser() if arg else PARTNER_DEFAULT
+    if not d.is_dir() or not any((c / "truth.json").is_file() for c in d.iterdir()):
+        sys.exit(f"bench_discrepancy: --partner {d}: no partner-sim folder (expected <case>/truth.json)")
+    if not (d.parent / "score.py").is_file():
+        sys.exit(f"bench_discrepancy: --partner {d}: no scorer at {d.parent / 'score.py'}")
+    return d
+
+
+def _partner_scorer(pdir: Path):
+    """The partner's score.py (beside the partner-sim folder) imported by path, not copied."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("partner_score", pdir.parent / "score.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _partner_cases(pdir: Path, cases: str = "", only: str = "", limit: int = 0) -> list[Path]:
+    """Case folders (those holding truth.json), by name; ``cases`` keeps the listed ids, ``only`` the
+    cases concealing one of the listed effects ("clean" for the clean ones)."""
+    keep = set(filter(None, cases.split(",")))
+    effs = set(filter(None, only.split(",")))
+    out = []
+    for c in sorted(p for p in pdir.iterdir() if (p / "truth.json").is_file()):
+        if keep and c.name not in keep:
+            continue
+        if effs:
+            t = json.loads((c / "truth.json").read_text())
+            if not effs & ({e["effect"] for e in t["effects"]} or {"clean"}):
+                continue
+        out.append(c)
+    if keep - {c.name for c in out} and not effs:
+        sys.exit(f"bench_discrepancy: --cases: not in {pdir}: {', '.join(sorted(keep - {c.name for c in out}))}")
+    return out[:limit] if limit else out
+
+
+def run_partner_one(args):
+    """Diagnose one partner case as ``maglev-ros diagnose`` does: the ambient recording and the first
+    pass (calibrates), plus the second pass (held out) when ``n_passes`` is 2."""
+    case_dir, n_passes = args
+    from maglev_ros.discrepancy.diagnose import diagnose
+    from maglev_ros.discrepancy.recording import load_recording
+    c = Path(case_dir)
+    t = time.time()
+    try:
+        passes = [load_recording(c / "pass")] + ([load_recording(c / "pass2")] if n_passes == 2 else [])
+        ambient = load_recording(c / "ambient")
+        if ambient.kind != "ambient":
+            raise ValueError(f"{c / 'ambient'}: run.kind {ambient.kind!r}, expected 'ambient'")
+        rep, err = diagnose(passes, ambient).to_dict(), None
+    except Exception as exc:             # one failed case is a failed case, not a failed run
+        rep, err = None, f"{type(exc).__name__}: {exc}"
+    return {"case": c.name, "passes": n_passes, "report": rep, "error": err, "seconds": time.time() - t}
+
+
+def score_partner(results, pdir: Path, scorer=None) -> list[dict]:
+    """Each result ({"case", "report", ...}) judged by the partner's scorer (``score_case`` on the
+    report written to a temporary file), plus what the table needs: per concealed effect right /
+    misplaced / missed (the scorer's ``find`` with and without its location rule), the entries that
+    name none of the concealed effects (wrong physics), the fit ratio."""
+    import tempfile
+    scorer = scorer or _partner_scorer(pdir)
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in results:
+            truth = json.loads((pdir / r["case"] / "truth.json").read_text())
+            rep = r.get("report")
+            path = Path(tmp) / f"{r['case']}.json"
+            if rep is not None:
+                path.write_text(json.dumps(rep, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+            s = scorer.score_case(pdir / r["case"], path)
+            path.unlink(missing_ok=True)
+            if rep is None:
+                s["detail"] = f"no report ({r.get('error') or 'not run'})"
+            entries = [e for e in (rep or {}).get("missing_physics") or [] if isinstance(e, dict)]
+
+            def names(eff, es):        # the scorer's name/category rule without its location rule
+                return scorer.find({**eff, "match": {**eff["match"], "location": None}}, es)[0]
+            effects = []
+            # no (readable) report: the scorer judges no effect, each one counts as missed
+            verdicts = s["effects"] or [{"found": False}] * len(truth["effects"])
+            for eff, found in zip(truth["effects"], verdicts):
+                effects.append({"effect": eff["effect"], "right": bool(found["found"]),
+                                "named": names(eff, entries)})
+            wrong = [str(e.get("effect")) for e in entries
+                     if not any(names(eff, [e]) for eff in truth["effects"])]
+            try:
+                fb, fa = float(rep["fit_before"]["nrmse"]), float(rep["fit_after"]["nrmse"])
+                ratio = fa / fb if fb > 0 else float("nan")
+            except (TypeError, KeyError, ValueError):
+                fb = fa = ratio = float("nan")
+            out.append({"case": r["case"], "clean": bool(truth["clean"]), "effects": effects, "wrong": wrong,
+                        "reported": [str(e.get("effect")) for e in entries], "passed": bool(s["passed"]),
+                        "detail": s["detail"], "fit_before": fb, "fit_after": fa, "ratio": ratio,
+                        "fit_ok": bool(math.isfinite(ratio) and ratio <= scorer.FIT_RATIO),
+                        "gain": 1.0 - ratio if math.isfinite(ratio) else 0.0,    # no report: nothing gained
+                        "seconds": r.get("seconds")})
+    return out
+
+
+def print_partner_table(title, results, pdir: Path, scorer=None, n_total: int | None = None) -> dict:
+    """Table of one pass mode on the partner's cases (see the module docstring for the columns)."""
+    scorer = scorer or _partner_scorer(pdir)
+    sc = score_partner(results, pdir, scorer)
+    n_total = n_total or sum(1 for p in pdir.iterdir() if (p / "truth.json").is_file())
+    rows: dict[str, dict] = {}
+    for c in sc:
+        for e in c["effects"] or [{"effect": "clean"}]:
+            row = rows.setdefault(e["effect"], {"n": 0, "right": 0, "misplaced": 0, "missed": 0, "wrong": 0,
+                                                "fit_ok": 0, "passed": 0, "gain": []})
+            row["n"] += 1
+            row["passed"] += c["passed"]
+            if c["clean"]:
+                row["wrong"] += bool(c["reported"])          # false alarm: anything reported
+                continue
+            row["right"] += e["right"]
+            row["misplaced"] += (not e["right"]) and e["named"]
+            row["missed"] += not e["named"]
+            row["wrong"] += bool(c["wrong"])
+            row["fit_ok"] += c["fit_ok"]
+            row["gain"].append(c["gain"])
+    print(f"\n== partner, {title}: {len(sc)} cases ({pdir}) ==")
+    print(f"{'effect':30s} {'n':>3s} {'right':>5s} {'misplaced':>9s} {'missed':>6s} {'wrong phys.':>11s} "
+          f"{'fit ok':>6s} {'passed':>6s} {'fit gain':>8s}")
+    for eff, r in sorted(rows.items(), key=lambda kv: (kv[0] == "clean", kv[0])):
+        if eff == "clean":
+            continue
+        g = f"{np.median(r['gain']) * 100:.0f} %" if r["gain"] else "-"
+        print(f"{eff:30s} {r['n']:3d} {r['right']:5d} {r['misplaced']:9d} {r['missed']:6d} {r['wrong']:11d} "
+              f"{r['fit_ok']:6d} {r['passed']:6d} {g:>8s}")
+    cl = rows.get("clean")
+    if cl:
+        print(f"{'clean (false alarms)':30s} {cl['n']:3d} {'':5s} {'':9s} {'':6s} {cl['wrong']:11d} {'':6s} "
+              f"{cl['passed']:6d} {'':>8s}")
+    npass = sum(c["passed"] for c in sc)
+    run_note = "" if len(sc) == n_total else f" ({len(sc)} of {n_total} cases run)"
+    print(f"scorer: {npass} of {len(sc)} passed{run_note}")
+    for c in sc:
+        truth = " + ".join(e["effect"] for e in c["effects"]) or "clean"
+        t = f"  {c['seconds']:.0f} s" if c.get("seconds") is not None else ""
+        flag = "" if c["clean"] or c["fit_ok"] else f" (> {scorer.FIT_RATIO})"
+        print(f"  {c['case']:5s} {'PASS' if c['passed'] else 'FAIL'} {truth:40s} fit ratio {c['ratio']:.2f}{flag:8s} "
+              f"reported: {', '.join(c['reported']) or 'none'}{t}")
+        print(f"        {c['detail']}")
+    eff_cases = [c for c in sc if not c["clean"]]
+    clean_cases = [c for c in sc if c["clean"]]
+    n_eff = sum(len(c["effects"]) for c in eff_cases)
+    n_right = sum(e["right"] for c in eff_cases for e in c["effects"])
+    n_mis = sum((not e["right"]) and e["named"] for c in eff_cases for e in c["effects"])
+    n_wrong = sum(bool(c["wrong"]) for c in eff_cases)
+    n_fa = sum(bool(c["reported"]) for c in clean_cases)
+    n_fit = sum(c["fit_ok"] for c in eff_cases)
+    gains = [c["gain"] for c in eff_cases]
+    med = float(np.median(gains)) if gains else float("nan")
+    print(f"partner, {title}: scorer {npass} of {len(sc)} passed{run_note}; effects right {n_right}/{n_eff} "
+          f"(misplaced {n_mis}, missed {n_eff - n_right - n_mis}); wrong physics in {n_wrong}/{len(eff_cases)} "
+          f"effect cases; false alarms {n_fa}/{len(clean_cases)} clean; fit ratio <= {scorer.FIT_RATIO} in "
+          f"{n_fit}/{len(eff_cases)} effect cases; median fit gain {100 * med:.0f} % (effect cases)")
+    return {"rows": rows, "passed": npass, "cases": len(sc), "right": n_right, "effects": n_eff,
+            "misplaced": n_mis, "wrong_physics_cases": n_wrong, "false_alarms": n_fa, "clean": len(clean_cases),
+            "fit_ok": n_fit, "median_fit_gain": med,
+            "per_case": [{k: c[k] for k in ("case", "passed", "ratio", "detail")} for c in sc]}
+
+
+def run_partner(a, pdir: Path, out: dict) -> None:
+    """Diagnose the partner's cases in each asked pass mode (``--jobs`` processes), storing each report
+    in ``out`` (and ``--json``) as it comes; a pass mode's table as soon as its cases are all in."""
+    modes = (1, 2) if a.passes == "both" else (int(a.passes),)
+    cases = _partner_cases(pdir, a.cases, a.only, a.limit)
+    scorer = _partner_scorer(pdir)
+    jobs = [(str(c), m) for m in modes for c in cases]
+    for m in modes:
+        out[f"partner-{m}"] = {"dir": str(pdir), "passes": m, "cases": []}
+    with ProcessPoolExecutor(a.jobs) as ex:
+        for r in ex.map(run_partner_one, jobs):
+            sec = out[f"partner-{r['passes']}"]
+            sec["cases"].append(r)
+            mp = (r["report"] or {}).get("missing_physics") or []
+            print(f"partner {r['case']} {PASS_MODES[r['passes']]:9s} found={[m['effect'] for m in mp]} "
+                  f"{r['seconds']:.0f}s" + (f" ERROR {r['error']}" if r["error"] else ""), flush=True)
+            if a.json:
+                _dump(a.json, out)
+            if len(sec["cases"]) == len(cases):
+                sec["summary"] = print_partner_table(PASS_MODES[r["passes"]], sec["cases"], pdir, scorer)
+
+
+def _partner_table_of_reports(a, folder: Path) -> None:
+    """--table REPORTS_DIR: the partner table of a folder of <ID>.json diagnosis reports (e.g. from
+    ``maglev-ros diagnose --out``), taken as made with ``--passes`` 1 or 2."""
+    if a.passes not in ("1", "2"):
+        sys.exit("bench_discrepancy: --table REPORTS_DIR: say which pass mode made them (--passes 1 or 2)")
+    pdir = _partner_dir(a.partner)
+    res = []
+    for c in _partner_cases(pdir, a.cases, a.only, a.limit):
+        f = folder / f"{c.name}.json"
+        res.append({"case": c.name, "passes": int(a.passes), "seconds": None,
+                    "report": json.loads(f.read_text()) if f.is_file() else None,
+                    "error": None if f.is_file() else f"no {f}"})
+    print_partner_table(f"{PASS_MODES[int(a.passes)]} (reports in {folder})", res, pdir)
+
+
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--split", default="both", choices=("tune", "heldout", "blind", "both"))
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__[__doc__.index("Partner cases"):])
+    ap.add_argument("--split", default=None, choices=("tune", "heldout", "blind", "both"),
+                    help="our generated split(s) (default: both, unless --partner alone is asked)")
+    ap.add_argument("--partner", nargs="?", const="", default=None, metavar="DIR",
+                    help="also diagnose the partner simulator's cases and score them with its score.py "
+                         "(DIR default: ../shared/validation/partner-sim beside the repository)")
+    ap.add_argument("--passes", default="both", choices=("1", "2", "both"),
+                    help="partner cases: 1 = ambient + pass, 2 = ambient + pass + pass2, both (default)")
+    ap.add_argument("--cases", default="", help="partner cases: comma-separated case ids (default: all)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated effects (clean, girder_attachment, ...)")
     ap.add_argument("--json", default="")
-    ap.add_argument("--table", default="", help="print the tables of a --json file (also a partial one)")
+    ap.add_argument("--table", default="", help="print the tables of a --json file (also a partial one), or the "
+                                                "partner table of a folder of <ID>.json reports (with --passes 1|2)")
     a = ap.parse_args()
     if a.table:
+        if os.path.isdir(a.table):
+            _partner_table_of_reports(a, Path(a.table))
+            return
         with open(a.table) as f:
             saved = json.load(f)
         for split, v in saved.items():
-            print_table(f"split {split}", v["cases"])
+            if split.startswith("partner"):
+                pdir = _partner_dir(a.partner if a.partner is not None
+                                    else (v.get("dir") if v.get("dir") and os.path.isdir(v["dir"]) else None))
+                print_partner_table(PASS_MODES[v["passes"]], v["cases"], pdir)
+            else:
+                print_table(f"split {split}", v["cases"])
         return
-    from discrepancy_cases import case_specs
-    splits = ("tune", "heldout") if a.split == "both" else (a.split,)
+    pdir = _partner_dir(a.partner) if a.partner is not None else None    # a missing folder: before any run
+    split = a.split or ("both" if pdir is None else None)
     out = {}
     t0 = time.time()
+    if split:
+        from discrepancy_cases import case_specs
+        splits = ("tune", "heldout") if split == "both" else (split,)
+    else:
+        splits = ()
     for split in splits:
         specs = case_specs(split)
         only = set(filter(None, a.only.split(",")))
@@ -284,6 +541,9 @@ def main():
                 if a.json:
                     _dump(a.json, {**out, split: {"cases": res}})
         out[split] = {"summary": print_table(f"split {split}", res), "cases": res}
+    if pdir is not None:
+        # the partner's tables after our own, in the same run
+        run_partner(a, pdir, out)
     print(f"\nwall time {time.time() - t0:.0f} s")
     if a.json:
         _dump(a.json, out)

@@ -70,15 +70,16 @@ class DiagnoseConfig:
     dropout_min_s: float = 0.1
     dt_max_s: float | None = None     # integration step of the diagnosing twin (None: design numerics)
     irregularity: bool = True         # drive the twin with the irregularity reconstructed from each pass
-    # the diagnosing twin's rail keeps the long waves that drive the car body (0-6 Hz): time high-pass
-    # 0.6 Hz, longest wave = pass speed / (band_factor x high-pass), the band-pass edge trimmed by
-    # trim_wavelengths of it at each end and edge_s seconds dropped at the ends of each stretch (the
-    # profiler's stated-band defaults 0.8 Hz / 2.0 / 1.0 / 1.5 / f_c cut the 15-60 m waves: on clean
-    # cases the body channels' NRMSE was 0.4-0.7, 0.03-0.06 with the true rail; docs/irregularity.md)
-    irregularity_highpass_hz: float = 0.6
-    irregularity_band_factor: float = 1.0
-    irregularity_trim_wavelengths: float = 0.5
-    irregularity_edge_s: float | None = 1.875
+    # the diagnosing twin's rail: reconstructed from each pass with the irregularity verb's own rule
+    # (corner from the pass's clean moving stretch, band to speed / (2 corner), edges 0.6 / corner;
+    # docs/irregularity.md). A fixed 0.6 Hz with the band reaching the corner itself (band factor 1)
+    # cut a slow foreign pass's 1-5 m waves to 30-45 % error and its magnets' floor to NRMSE 0.3-0.4;
+    # with the pass's rule the error there was 3-8 % and the magnets' NRMSE 0.18-0.19 (the true rail:
+    # 0.03). None: follow the pass; a number fixes the corner [Hz]
+    irregularity_highpass_hz: float | None = None
+    irregularity_band_factor: float = 2.0
+    irregularity_trim_wavelengths: float = 1.0
+    irregularity_edge_s: float | None = None
     base_refit_nfev: int = 4          # calibration steps after the irregularity is rebuilt
     # besides the n_top best-screened: the best of every further effect and every girder/bearing
     # hypothesis of the spans the strongest guideway mismatches name (False: the n_top only)
@@ -455,6 +456,12 @@ class Diagnoser:
                 local_ev[id(hf)] = (pf_n.heldout_before, pf_n.heldout_after)
             chosen.append((hf, v, d))
         rejected = []
+        unseen = [s.span_id for s in base.spec.spans if s.span_id not in set(span_of.values())]
+        if unseen:
+            rejected.append({"effect": "girder_stiffness_loss", "why": (
+                f"not testable on span(s) {', '.join(unseen)} (nor their bearings, bearing_stiffness): no guideway "
+                "sensor there; the vehicle channels alone cannot tell a span's stiffness from the rail they "
+                "reconstruct")})
         body = sorted({n for rd in rd_all for n in rd.rec.names("body_accel")})
         if not body:
             # measured: a 6 or 9 Hz bending mode changes the magnet accelerations by <= 0.2 % and the
@@ -510,8 +517,7 @@ class Diagnoser:
             disc += mode_shift_findings(detuned, base_spec_spans(final_spec))
             if disc:
                 # model what was found (added girder resonator / sparse suspension terms), judged by
-                # the catalogue's gates; an added resonator is reported in ``discovery`` only, never as
-                # missing_physics (an accepted one was once placed on the wrong span)
+                # the catalogue's gates; an accepted resonator is missing physics (see the report stage)
                 disc = model_discoveries(disc, base, rd_train, rd_test, cfg.acceptance, log=notes.append)
             # the air springs, from the car-body accelerometers (their low-band misfit is the rail's
             # long-wave error on every case, so no mismatch points there: always tried when they exist)
@@ -596,6 +602,15 @@ class Diagnoser:
                 rejected += _resonator_rejections(cand, "it fits, but the stiffness loss explains the misfit better "
                                                         f"(held-out NRMSE {held_chosen:.3f})")
         progress.stage("report")
+        # an accepted out-of-catalogue model is missing physics like a catalogue one, and the twin after
+        # carries it (as it was judged)
+        found_models = [(d.pop("_fit"), d) for d in disc if "_fit" in d]
+        found_missing = []
+        if found_models and final_spec.resonator is None:
+            rf, d = found_models[0]
+            final_spec = (final_spec if chosen else rf.spec).with_(resonator=rf.resonator)
+            found_missing.append(_resonator_entry(rf, d))
+            maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_fin]
         nr_after, pc_after = fit_report(final_spec, rd_fin)
         missing = [self._entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                                signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
@@ -603,6 +618,7 @@ class Diagnoser:
                                by_peers.get(id(hf))) for hf, v, d in chosen]
         if air_missing:
             missing.insert(0, air_missing)
+        missing += found_missing
         report = {
             "schema": SCHEMA,
             "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
@@ -637,7 +653,14 @@ class Diagnoser:
         veh = rec.names("vehicle_accel") + rec.names("gap")
         body = rec.names("body_accel")
         gw = rec.names("guideway_accel") + rec.names("guideway_disp")
-        hyps = cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
+        # a span's structure (girder, bearings) is tested where guideway sensors measure that span: the
+        # vehicle channels alone cannot tell a span's stiffness from the rail they themselves reconstruct
+        # (the loaded -> unloaded step removes the twin's deflection), and on a clean foreign line a 74 %
+        # "loss" of an unmeasured span traded for the rail's long-wave error on the magnets
+        seen = set(_guideway_spans(rec, spec).values())
+        hyps = [h for h in cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
+                if h.location.get("span") in seen]
+        hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1)
         if veh:
             fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
             hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
@@ -826,7 +849,8 @@ def _air_spring_entry(air: dict) -> dict:
     params["force_share_at_largest_deflection"] = float(m["share_at_peak"])
     params["largest_deflection_m"] = float(m["max_deflection_m"])
     chans = list(air["channels"])
-    return {"effect": "air_spring_nonlinearity", "category": "suspension", "explanation": air["explanation"],
+    return {"effect": "air_spring_nonlinearity", "category": "suspension", "out_of_catalogue": True,
+            "explanation": air["explanation"],
             "location": {"position_m": None, "span": None, "channels": chans,
                          "place": air["location"].get("place")},
             "frequency_hz": air["frequency_hz"], "parameters": params,
@@ -836,6 +860,26 @@ def _air_spring_entry(air: dict) -> dict:
                          "judged_on": m["evidence"]["judged_on"]},
             "heldout_on_its_channels": {"channels": sorted(chans), "nrmse_before": float(m["heldout_nrmse_twin"]),
                                         "nrmse_after": float(m["heldout_nrmse_after"])}}
+
+
+def _resonator_entry(rf, d: dict) -> dict:
+    """The ``missing_physics`` entry of an accepted added resonator (out of the catalogue: effect
+    ``resonant_attachment``, or ``added_mass`` when rigid; category guideway_structure): where it sits
+    (the fitted place and its mirror image on the span), the band it lives in, its fitted parameters
+    and the held-out evidence it was accepted on."""
+    m = d["model"]
+    r = rf.resonator
+    return {"effect": "added_mass" if r.rigid else "resonant_attachment", "category": "guideway_structure",
+            "out_of_catalogue": True, "explanation": d["explanation"],
+            "location": {"position_m": [float(x) for x in rf.position_range_m], "span": rf.span_id, "channels": []},
+            "frequency_hz": [float(x) for x in d["frequency_hz"]],
+            "parameters": {"own_frequency_hz": None if r.rigid else float(r.freq_hz), "mass_kg": float(rf.mass_kg),
+                           "mass_ratio": float(r.mass_ratio), "position_m": float(rf.position_m),
+                           "damping_ratio": None if r.rigid else float(r.damping_ratio),
+                           "residual_band_hz": d.get("residual_band_hz")},
+            "evidence": {"heldout_nrmse_before": m["evidence"]["heldout_nrmse_before"],
+                         "heldout_nrmse_after": m["evidence"]["heldout_nrmse_after"],
+                         "delta_bic": m["evidence"]["delta_bic"]}}
 
 
 def _guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "guideway_disp")) -> dict:

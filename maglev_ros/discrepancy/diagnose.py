@@ -456,7 +456,7 @@ class Diagnoser:
                 local_ev[id(hf)] = (pf_n.heldout_before, pf_n.heldout_after)
             chosen.append((hf, v, d))
         rejected = []
-        unseen = [s.span_id for s in base.spec.spans if s.span_id not in set(span_of.values())]
+        unseen = structural_hypotheses(base.spec, rd_train[0].rec, np.ones(len(base.spec.spans)))[1]
         if unseen:
             rejected.append({"effect": "girder_stiffness_loss", "why": (
                 f"not testable on span(s) {', '.join(unseen)} (nor their bearings, bearing_stiffness): no guideway "
@@ -653,14 +653,7 @@ class Diagnoser:
         veh = rec.names("vehicle_accel") + rec.names("gap")
         body = rec.names("body_accel")
         gw = rec.names("guideway_accel") + rec.names("guideway_disp")
-        # a span's structure (girder, bearings) is tested where guideway sensors measure that span: the
-        # vehicle channels alone cannot tell a span's stiffness from the rail they themselves reconstruct
-        # (the loaded -> unloaded step removes the twin's deflection), and on a clean foreign line a 74 %
-        # "loss" of an unmeasured span traded for the rail's long-wave error on the magnets
-        seen = set(_guideway_spans(rec, spec).values())
-        hyps = [h for h in cat.girder_hypotheses(spec, f1) + cat.bearing_hypotheses(spec)
-                if h.location.get("span") in seen]
-        hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1)
+        hyps, _ = structural_hypotheses(spec, rec, f1)
         if veh:
             fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
             hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
@@ -860,6 +853,20 @@ def _air_spring_entry(air: dict) -> dict:
                          "judged_on": m["evidence"]["judged_on"]},
             "heldout_on_its_channels": {"channels": sorted(chans), "nrmse_before": float(m["heldout_nrmse_twin"]),
                                         "nrmse_after": float(m["heldout_nrmse_after"])}}
+
+
+def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray) -> tuple[list, list[str]]:
+    """(girder and bearing hypotheses, ids of the spans left untested) for a recording: a span's
+    structure is tested where guideway sensors measure that span. The vehicle channels alone cannot
+    tell a span's stiffness from the rail they themselves reconstruct (the loaded -> unloaded step
+    removes the twin's deflection): on a clean foreign line a 74 % "loss" of an unmeasured span traded
+    for the rail's long-wave error on the magnets. Every measured span gets a uniform loss, a damaged
+    zone per quarter and a bearing at each end."""
+    seen = set(_guideway_spans(rec, spec).values())
+    hyps = [h for h in cat.girder_hypotheses(spec, f1_hz) + cat.bearing_hypotheses(spec)
+            if h.location.get("span") in seen]
+    hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
+    return hyps, [s.span_id for s in spec.spans if s.span_id not in seen]
 
 
 def _resonator_entry(rf, d: dict) -> dict:

@@ -39,19 +39,19 @@ from . import catalogue as cat
 from .catalogue import VEHICLE_WIDE
 from .acceptance import REST_WORSE, AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from .air_springs import AirSpringTermFinder
-from .damping import measure_damping
+from .pipeline.calibrate import calibrate
+from .pipeline.localize import localize
+from .pipeline.propose import guideway_spans as _guideway_spans, propose, structural_hypotheses
 from .discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
-from .evaluate import (RecData, Selection, ambient_shape, fit_report, levitation_items, model_powers, prepare,
+from .evaluate import (RecData, Selection, fit_report, levitation_items, model_powers,
                        residual_rows, residual_vector, split_frames)
-from .fitting import (IDENTIFIABLE_LLR, BaseFit, HypFit, bic, fit_base, fit_gains, fit_hypothesis, safe_residual,
-                      profile_spread, screen)
-from .localize import Mismatch, mismatches, persistent_mismatches, residual_map
-from .model import ModelSpec, base_spec, guideway_modal
-from .irregularity import with_twin_irregularity
-from .recording import GROUP_UNIT, Recording, require_pass
+from .fitting import (IDENTIFIABLE_LLR, BaseFit, HypFit, bic, fit_gains, fit_hypothesis, safe_residual,
+                      profile_spread)
+from .localize import Mismatch, residual_map
+from .model import ModelSpec, guideway_modal
+from .recording import Recording, require_pass
 from .scale_signature import (MIN_ABS_LOG_SCALE, PeerReferencedFit, ScaleSignature, peer_referenced_fit,
                               scale_signature)
-from .span_modes import detuned_spans, span_mode_shifts
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -104,22 +104,6 @@ class Diagnosis:
         return self.report
 
 
-def detect_dropouts(rec: Recording, min_s: float) -> list[tuple[str, float, float, float]]:
-    """Stretches where a channel repeats exactly the same value (a live sensor never does)."""
-    out = []
-    for n, ch in rec.channels.items():
-        d = np.diff(ch.values) == 0
-        if not d.any():
-            continue
-        x = np.concatenate([[0], d.astype(np.int8), [0]])
-        starts = np.flatnonzero(np.diff(x) == 1)
-        ends = np.flatnonzero(np.diff(x) == -1)
-        for a, b in zip(starts, ends):
-            if (b - a) / ch.sample_rate_hz >= min_s:
-                out.append((n, float(ch.time_s[a]), float(ch.time_s[b]), float(ch.values[a])))
-    return out
-
-
 class Diagnoser:
     def __init__(self, config: DiagnoseConfig = DiagnoseConfig()):
         self.config = config
@@ -132,97 +116,20 @@ class Diagnoser:
         for p in passes:
             require_pass(p)
         cfg = self.config
-        # the fastest pass trains, the others are held out: amplitude-dependent physics (current
-        # saturation at the demand peaks) shows most there, and a model fitted on the largest
-        # excitation is then checked where it must extrapolate downwards (fitted on a slower pass a
-        # saturation limit was unconstrained and over-saturated the fast held-out pass)
-        passes = sorted(passes, key=lambda p: -_mean_speed_mps(p))
-        nominal = base_spec(passes[0].metadata, cfg.n_elements).with_(dt_max_s=cfg.dt_max_s)
-        # what the recordings measure directly is set before anything is fitted: the girder's
-        # damping from the ambient recording's modes (a fitted E or kb cannot make up for it)
-        damping = measure_damping(ambient, nominal)
-        base0 = (nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied
-                 else nominal)
-        same_heldout = len(passes) == 1
-        notes: list[str] = []
-        if not same_heldout:
-            notes.append(f"training pass: {passes[0].source} (the fastest, {_mean_speed_mps(passes[0]):.1f} m/s); "
-                         f"held out: {', '.join(p.source for p in passes[1:])}")
-        raw_passes = list(passes)
-
-        def prepared(spec, floor_spec=None, log=notes.append):
-            ps = list(raw_passes)
-            if cfg.irregularity:
-                ps = [with_twin_irregularity(p, spec, highpass_hz=cfg.irregularity_highpass_hz,
-                                             band_factor=cfg.irregularity_band_factor,
-                                             trim_wavelengths=cfg.irregularity_trim_wavelengths,
-                                             edge_s=cfg.irregularity_edge_s,
-                                             log=log) for p in raw_passes]
-            full = [prepare(r, spec if floor_spec is None else floor_spec) for r in ps]
-            # held out: every other pass. (Alternate 1.5 s windows of the training pass as extra
-            # held-out data were tried: on a clean 2-span case a guideway sensor's model error then
-            # "generalised" to the same pass's other windows and was called a 9 % scale fault.)
-            return ps, full, full[:1], (full[:1] if same_heldout else full[1:])
-        # the irregularity of each pass drives the twin: reconstructed with the nominal twin for a
-        # first calibration, then ONCE more with the calibrated twin (kept for every hypothesis)
-        progress.stage("calibrate the twin", total=4 if cfg.irregularity else 2)
-        passes, rd_all, rd_train, rd_test = prepared(base0)
-        progress.advance(note="rail from the nominal twin")
-        base = fit_base(base0, rd_train, cfg.base_max_nfev)
-        progress.advance(note="calibrated")
-        if cfg.irregularity and any(p.irregularity is not None for p in passes):
-            passes, rd_all, rd_train, rd_test = prepared(base.spec)
-            progress.advance(note="rail from the calibrated twin")
-            base = fit_base(base.spec, rd_train, cfg.base_refit_nfev)
-            progress.advance(note="re-calibrated")
-        progress.stage("locate mismatches", total=len(rd_all) + (ambient is not None))
-        rd_amb = prepare(ambient, base0) if ambient is not None else None
-        # dropouts are a data fact: detected, then modelled on every recording
-        drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, cfg.dropout_min_s)]
-        nr_before, pc_before = fit_report(base.spec, rd_all)
+        # ---- calibrate
+        cal = calibrate(passes, ambient, cfg, progress)
+        nominal, base, damping = cal.nominal, cal.base, cal.damping
+        passes, rd_all, rd_train, rd_test = cal.data.passes, cal.data.rd_all, cal.data.rd_train, cal.data.rd_test
+        same_heldout, notes, raw_passes = cal.same_heldout, cal.notes, cal.prepare.raw_passes
+        nr_before, pc_before = cal.fit_nrmse, cal.fit_per_channel
         # ---- localize
-        mp_base = [model_powers(base.spec, rd) for rd in progress.steps(rd_all, lambda rd: rd.rec.source)]
-        maps = [residual_map(rd, mp) for rd, mp in zip(rd_all, mp_base)]
-        found: list[Mismatch] = []
-        for m in maps:
-            found.extend(mismatches(m))
-        if rd_amb is not None:
-            found.extend(mismatches(residual_map(rd_amb, model_powers(base.spec, rd_amb)), max_regions=4))
-            progress.advance(note="ambient")
-        found.sort(key=lambda m: -m.severity * (m.time_s[1] - m.time_s[0]))
-        # band misfits of one girder sensor that persist over whole passes (too weak for any frame)
-        persistent = persistent_mismatches(rd_all, mp_base)
-        found.extend(persistent)
-        # spans whose first mode rings off the others' in the free decay after the passes (reported;
-        # a finding for the discovery below, not a reason to fit more catalogue hypotheses)
-        detuned = detuned_spans(span_mode_shifts(passes, base.spec))
-        # ---- hypotheses
-        hyps = self._hypotheses(base, rd_train)
-        tried = []
-        physics = [h for h in hyps if h.needs_sim]
-        cheap = [h for h in hyps if not h.needs_sim]
-        screened = []
-        progress.stage("screen catalogue hypotheses", total=len(physics))
-        for h in physics:
-            try:
-                screened.append((screen(base, h, rd_train), h))
-            except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
-                tried.append({"effect": h.effect, "label": h.label, "why": f"twin failed at trial value ({exc})"})
-            progress.advance(note=h.label)
-        screened.sort(key=lambda t: t[0])
-        # the best-screened hypotheses, and the best of every further effect (screening at a trial value
-        # ranks effects with very different footprints: a bearing at 30 % of its stiffness ranked below
-        # the four vehicle/girder ones and was never fitted)
-        # Also every girder/bearing hypothesis of the spans whose sensors the strongest guideway
-        # mismatches name (locate, then explain: the same bearing case's screening preferred the
-        # wrong end of the right span)
-        phys = [h for _, h in screened[:cfg.n_top]]
-        span_of = _guideway_spans(rd_train[0].rec, base.spec)
-        flagged = {span_of[c] for m in [m for m in found if m.group.startswith("guideway")][:3]
-                   for c in m.channels if c in span_of}
-        for _, h in (screened[cfg.n_top:] if cfg.fit_every_effect else []):
-            if (h.effect, h.form) not in {(p.effect, p.form) for p in phys} or h.location.get("span") in flagged:
-                phys.append(h)
+        loc = localize(cal, ambient, cfg, progress)
+        rd_amb, drops, mp_base, maps = loc.ambient, loc.dropouts, loc.model_powers, loc.maps
+        found, persistent, detuned = loc.found, loc.persistent, loc.detuned
+        # ---- propose
+        prop = propose(cal, loc, cfg, progress)
+        screened, phys, cheap, tried = prop.screened, prop.fitted_in_full, prop.cheap, prop.untestable
+        physics, span_of = prop.simulated, prop.span_of
         cands = phys + cheap
         fits: list[tuple[HypFit, Verdict, float]] = []
         n_eff = max(10, base.r0.size // 2)
@@ -259,7 +166,8 @@ class Diagnoser:
                 sp = fit_gains(base, rd_train, residual_rows(base.spec, rd_train, fit_on))
                 tr, te = rd_train, rd_test
                 if rebuild:
-                    _, _, tr, te = prepared(sp, floor_spec=base.spec, log=None)
+                    own_set = cal.prepare(sp, floor_spec=base.spec, log=None)
+                    tr, te = own_set.rd_train, own_set.rd_test
                 held = held_of(h, tr, te)
                 r_tr, r_te = residual_vector(sp, tr, fit_on), residual_vector(sp, held, judged_on)
                 nulls[key] = _Null(float(r_tr @ r_tr), max(10, r_tr.size // 2), fit_report(sp, held, judged_on)[0],
@@ -324,7 +232,8 @@ class Diagnoser:
                 # 0.335 -> 0.376 on the calibrated twin's rail, guideway G3A 0.39 -> 0.80, but 0.335 ->
                 # 0.175 on its own; the calibrated twin on that rail: 0.416, so the rail alone is no gain);
                 # its training misfit too
-                _, own, rd_train_h, rd_test_h = prepared(hf.spec, floor_spec=base.spec, log=None)
+                own_set = cal.prepare(hf.spec, floor_spec=base.spec, log=None)
+                own, rd_train_h, rd_test_h = own_set.rd_all, own_set.rd_train, own_set.rd_test
                 own_rail[id(hf)] = own
                 r_own = safe_residual(hf.spec, rd_train_h)
                 hf.rss = float(r_own @ r_own) if r_own is not None else math.inf
@@ -645,44 +554,6 @@ class Diagnoser:
         return Diagnosis(report, extras)
 
     # ------------------------------------------------------------------------------------
-    def _hypotheses(self, base: BaseFit, rds: list[RecData]) -> list[cat.Hypothesis]:
-        spec = base.spec
-        rec = rds[0].rec
-        modal = guideway_modal(spec)
-        f1 = np.array([modal.freq_hz[modal.span_index == i].min() for i in range(len(spec.spans))])
-        veh = rec.names("vehicle_accel") + rec.names("gap")
-        body = rec.names("body_accel")
-        gw = rec.names("guideway_accel") + rec.names("guideway_disp")
-        hyps, _ = structural_hypotheses(spec, rec, f1)
-        if veh:
-            fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
-            hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
-            demand = _current_demand_a(spec, rds)
-            if demand > 0:
-                hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,
-                                                                spec.config.levitation.static_current_a))
-        if body:
-            hyps.append(cat.carbody_hypothesis(body + veh))
-        if gw:
-            rd = rds[0]
-            shape = ambient_shape(spec, rd)
-
-            fc = np.maximum(rd.grid.band_center_hz, 1.0)
-
-            def rms_of(lg, slope, shape=shape, fc=fc):
-                return {n: float(math.sqrt((10 ** lg) * np.sum(s * (fc / 20.0) ** slope))) for n, s in shape.items()
-                        if rd.rec.channels[n].group == "guideway_accel"}
-            hyps.append(cat.ambient_hypothesis(gw, rms_of))
-        for n, ch in rec.channels.items():
-            if ch.group == "body_accel":
-                # not tested: a car-body channel is compared through its ratio to the magnets above
-                # 3 Hz, which holds ~17 % model error (a clean case fitted a 1.18 scale; an
-                # offset/drift fit reached those bands only through window leakage)
-                continue
-            noise = float(np.sqrt(np.sum(rds[0].noise[n][rds[0].masks[n]])))
-            hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
-        return hyps
-
     def _recalibrated_whole(self, base: BaseFit, hf: HypFit, v: Verdict, rd_train, rd_test,
                             held_before: float) -> tuple[HypFit, Verdict]:
         """Levitation physics that passed every gate on its channels but made the rest of the recording
@@ -855,20 +726,6 @@ def _air_spring_entry(air: dict) -> dict:
                                         "nrmse_after": float(m["heldout_nrmse_after"])}}
 
 
-def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray) -> tuple[list, list[str]]:
-    """(girder and bearing hypotheses, ids of the spans left untested) for a recording: a span's
-    structure is tested where guideway sensors measure that span. The vehicle channels alone cannot
-    tell a span's stiffness from the rail they themselves reconstruct (the loaded -> unloaded step
-    removes the twin's deflection): on a clean foreign line a 74 % "loss" of an unmeasured span traded
-    for the rail's long-wave error on the magnets. Every measured span gets a uniform loss, a damaged
-    zone per quarter and a bearing at each end."""
-    seen = set(_guideway_spans(rec, spec).values())
-    hyps = [h for h in cat.girder_hypotheses(spec, f1_hz) + cat.bearing_hypotheses(spec)
-            if h.location.get("span") in seen]
-    hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
-    return hyps, [s.span_id for s in spec.spans if s.span_id not in seen]
-
-
 def _resonator_entry(rf, d: dict) -> dict:
     """The ``missing_physics`` entry of an accepted added resonator (out of the catalogue: effect
     ``resonant_attachment``, or ``added_mass`` when rigid; category guideway_structure): where it sits
@@ -887,18 +744,6 @@ def _resonator_entry(rf, d: dict) -> dict:
             "evidence": {"heldout_nrmse_before": m["evidence"]["heldout_nrmse_before"],
                          "heldout_nrmse_after": m["evidence"]["heldout_nrmse_after"],
                          "delta_bic": m["evidence"]["delta_bic"]}}
-
-
-def _guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "guideway_disp")) -> dict:
-    """Guideway channel -> the id of the span holding it."""
-    out = {}
-    for n, c in rec.channels.items():
-        if c.group in groups and c.position_m is not None:
-            for sp in spec.spans:
-                if sp.start_m <= c.position_m <= sp.end_m:
-                    out[n] = sp.span_id
-                    break
-    return out
 
 
 RECALIBRATED = "accepted with the levitation gains re-calibrated on the whole recording"
@@ -1071,29 +916,6 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
                 v = Verdict(False, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic)
         out.append((hf, v, d))
     return out
-
-
-def _mean_speed_mps(rec: Recording) -> float:
-    return float(np.nanmean(np.abs(rec.speed_mps))) if rec.speed_mps is not None and rec.speed_mps.size else 0.0
-
-
-def _current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
-    """Largest |I - I0| of the calibrated twin's magnets on the training passes while the vehicle is
-    over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
-    reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
-    2.7 A), and a saturation limit relative to it could not come down to the true one."""
-    from .irregularity import vehicle_over_valid
-    from .model import simulate
-    peak = 0.0
-    for rd in rds:
-        res = simulate(spec, rd.rec)
-        if res is None or res.magnet_current_a.size == 0:
-            continue
-        ok = vehicle_over_valid(rd.rec, res.time_s, spec.effective_config().vehicle.magnet_offsets_m)
-        dI = np.abs(res.magnet_current_a[ok] - spec.config.levitation.static_current_a)
-        if dI.size:
-            peak = max(peak, float(dI.max()))
-    return peak
 
 
 def _per_group(per_channel: dict, groups: dict) -> dict:

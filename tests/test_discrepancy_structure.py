@@ -7,7 +7,7 @@ import pytest
 
 from maglev_ros.discrepancy.acceptance import Verdict
 from maglev_ros.discrepancy.attachment import Resonator
-from maglev_ros.discrepancy.diagnose import _resonator_entry
+from maglev_ros.discrepancy.pipeline.report import _resonator_entry
 from maglev_ros.discrepancy.pipeline.propose import structural_hypotheses
 from maglev_ros.discrepancy.model import base_spec
 from maglev_ros.discrepancy.recording import recording_from_arrays

@@ -139,8 +139,8 @@ def current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
     over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
     reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
     2.7 A), and a saturation limit relative to it could not come down to the true one."""
-    from .irregularity import vehicle_over_valid
-    from .model import simulate
+    from ..irregularity import vehicle_over_valid
+    from ..model import simulate
     peak = 0.0
     for rd in rds:
         res = simulate(spec, rd.rec)

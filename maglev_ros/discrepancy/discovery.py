@@ -59,7 +59,7 @@ def resonator_explainable(d: dict) -> bool:
     """A located finding an added girder resonator could explain: on a span, sensed by the
     guideway, with a band reaching above ``RESONATOR_MIN_HZ``."""
     return (d["location"].get("span") is not None and d.get("sensed_on") != "vehicle"
-            and d["frequency_hz"][1] > RESONATOR_MIN_HZ)
+            and d.get("kind") != "torsional_mode" and d["frequency_hz"][1] > RESONATOR_MIN_HZ)
 
 
 def _span_of(x, spans):

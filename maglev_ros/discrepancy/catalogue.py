@@ -79,18 +79,25 @@ def _bearing(spec: ModelSpec, i: int, end: int, v: float) -> tuple:
     return tuple(tuple(x) for x in b)
 
 
+def _loss_plausible(of: str, max_loss: float, beyond: str) -> Callable[[np.ndarray], tuple[bool, str]]:
+    """A stiffness loss is a finding from 5 % (smaller is within the calibration's reach) up to
+    ``max_loss`` (beyond it the girder, or the zone ``of`` names, would not carry the line)."""
+    def plaus(p):
+        if p[0] < 0.05:
+            return False, f"fitted stiffness change {-p[0] * 100:+.0f} %{of} is not a loss of at least 5 %"
+        if p[0] > max_loss:
+            return False, f"fitted loss {p[0] * 100:.0f} %{of} {beyond}"
+        return True, ""
+    return plaus
+
+
 def girder_hypotheses(spec: ModelSpec, f1_hz: np.ndarray) -> list[Hypothesis]:
     out = []
     for i, s in enumerate(spec.spans):
         def apply(sp, p, i=i):
             return sp.with_(span_e_factor=_span_factor(sp, i, 1.0 - float(p[0])))
 
-        def plaus(p):
-            if p[0] < 0.05:
-                return False, f"fitted stiffness change {-p[0] * 100:+.0f} % is not a loss of at least 5 %"
-            if p[0] > 0.8:
-                return False, f"fitted loss {p[0] * 100:.0f} % is beyond a girder still in service"
-            return True, ""
+        plaus = _loss_plausible("", 0.8, "is beyond a girder still in service")
 
         def desc(p, sp, i=i, s=s):
             f_new = f1_hz[i] * math.sqrt(max(1 - p[0], 1e-6))
@@ -127,12 +134,7 @@ def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray) -> 
                 keep = tuple(z for z in sp.girder_zones if (z[0], z[1], z[2]) != (i, x0, x1))
                 return sp.with_(girder_zones=keep + ((i, x0, x1, 1.0 - float(p[0])),))
 
-            def plaus(p):
-                if p[0] < 0.05:
-                    return False, f"fitted stiffness change {-p[0] * 100:+.0f} % of the zone is not a loss of at least 5 %"
-                if p[0] > 0.9:
-                    return False, f"fitted loss {p[0] * 100:.0f} % of the zone leaves no girder there"
-                return True, ""
+            plaus = _loss_plausible(" of the zone", 0.9, "leaves no girder there")
 
             def desc(p, sp, i=i, s=s, x0=x0, x1=x1):
                 from .model import guideway_modal

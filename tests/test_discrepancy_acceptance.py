@@ -107,8 +107,8 @@ def test_levitation_physics_whose_trade_is_the_gains_is_recalibrated_on_every_ch
     than the allowance, still rejected otherwise; the gates on its channels are not re-opened."""
     from types import SimpleNamespace as NS
 
-    import maglev_ros.discrepancy.diagnose as D
-    from maglev_ros.discrepancy.acceptance import REST_WORSE, Verdict
+    import maglev_ros.discrepancy.pipeline.fit as D
+    from maglev_ros.discrepancy.acceptance import AcceptanceConfig, REST_WORSE, Verdict
 
     whole = {"value": 0.1045}
     calls = []
@@ -122,11 +122,10 @@ def test_levitation_physics_whose_trade_is_the_gains_is_recalibrated_on_every_ch
         hyp = NS(apply=lambda sp, p: "physics", effect="magnet_nonlinearity")
         return NS(hyp=hyp, params=np.array([1.3]), spec="vehicle-rows")
     v = Verdict(False, (f"{REST_WORSE} (whole held-out NRMSE 0.103 -> 0.111)",), 0.1035, 0.111, -39.0)
-    dg = D.Diagnoser()
-    hf, v2 = dg._recalibrated_whole(base, case(), v, [], [], 0.1035)
+    hf, v2 = D.recalibrated_whole(base, case(), v, [], [], 0.1035, AcceptanceConfig())
     assert v2.accepted and v2.heldout_after == pytest.approx(0.1045) and hf.spec.name == "all-rows"
     assert calls == [5] and v2.reasons[0].startswith(D.RECALIBRATED) and "0.111" in v2.reasons[0]
     whole["value"] = 0.1035 * 1.03          # worse than the 2.5 % allowance with every channel re-fitted too
-    hf, v3 = dg._recalibrated_whole(base, case(), v, [], [], 0.1035)
+    hf, v3 = D.recalibrated_whole(base, case(), v, [], [], 0.1035, AcceptanceConfig())
     assert not v3.accepted and hf.spec == "vehicle-rows" and v3.reasons[0] == v.reasons[0]
     assert "re-calibrated on every channel too" in v3.reasons[-1]

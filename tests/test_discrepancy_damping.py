@@ -85,3 +85,21 @@ def test_no_modes_no_exception(simulated):
         json.dumps(md.to_dict(), allow_nan=False)
     md = measure_damping(None, spec)
     assert not md.applied and "no ambient" in md.reason
+
+
+@pytest.mark.skipif(not PARTNER.is_dir(), reason=f"partner validation data not present ({PARTNER})")
+@pytest.mark.parametrize("case", ["H01", "H06", "H09"])
+def test_a_mode_the_twin_lacks_is_found_in_the_ambient_recording(case):
+    """The partner's truth: H09 carries an attached spring-mass whose coupled mode rings at
+    ``coupled_mode_hz``; H01 (clean) and H06 (a damage zone: modes shift, none is added) carry none."""
+    import json
+    truth = json.loads((PARTNER / case / "truth.json").read_text())
+    spec = base_spec(load_recording(str(PARTNER / case / "pass")).metadata)
+    md = measure_damping(load_recording(str(PARTNER / case / "ambient")), spec)
+    seen = [m for m in md.extra_modes if m.in_the_data and m.vertical]
+    attached = [e for e in truth["effects"] if e["effect"] == "resonant_attachment"]
+    if not attached:
+        assert seen == []
+        return
+    f_true = attached[0]["parameters"]["coupled_mode_hz"]
+    assert len(seen) == 1 and seen[0].freq_hz == pytest.approx(f_true, rel=0.02)

@@ -61,7 +61,7 @@ def test_peer_check_keeps_a_sensor_fault_whose_signature_only_it_shows():
     from types import SimpleNamespace as NS
 
     from maglev_ros.discrepancy.acceptance import Verdict
-    from maglev_ros.discrepancy.diagnose import _peer_check
+    from maglev_ros.discrepancy.pipeline.judge import _peer_check
 
     from maglev_ros.discrepancy.catalogue import sensor_hypothesis
 
@@ -85,7 +85,7 @@ def test_peer_check_a_scale_the_other_gap_sensor_shares_is_the_twins_level():
 
     from maglev_ros.discrepancy.acceptance import Verdict
     from maglev_ros.discrepancy.catalogue import sensor_hypothesis
-    from maglev_ros.discrepancy.diagnose import _peer_check
+    from maglev_ros.discrepancy.pipeline.judge import _peer_check
 
     noise, span_s = 2e-5, 12.0
 
@@ -130,7 +130,7 @@ def test_two_sensors_of_one_span_reading_high_is_the_span_not_two_faults(seed):
     """Both sensors of span S2 read 1.4x their peers (a span change, e.g. a soft bearing): neither is
     a sensor fault; one sensor alone reading 1.35x is."""
     from types import SimpleNamespace as NS
-    from maglev_ros.discrepancy.diagnose import _span_wide
+    from maglev_ros.discrepancy.pipeline.judge import _span_wide
     rng = np.random.default_rng(300 + seed)
     pos = {"G0": 2.0, "G1": 4.0, "G2": 14.0, "G3": 16.0, "G4": 26.0, "G5": 28.0}
     rec = NS(channels={n: NS(group="guideway_accel", position_m=x) for n, x in pos.items()})
@@ -156,7 +156,7 @@ def test_an_accepted_scale_fault_without_the_signature_is_rejected():
     band (an attachment detuning its span) is the structure, not the instrument; with the signature,
     or with a small scale (offset/drift fits), the verdict stands."""
     from maglev_ros.discrepancy.acceptance import Verdict
-    from maglev_ros.discrepancy.diagnose import _scale_needs_its_signature
+    from maglev_ros.discrepancy.pipeline.judge import _scale_needs_its_signature
     from maglev_ros.discrepancy.scale_signature import ScaleSignature
     ok = Verdict(True, (), 0.155, 0.140, -649.0)
     mixed = ScaleSignature("G2A", (-0.07, -0.06), (0.65, 0.59), (14, 14), ("G1A", "G2Q", "G3A"))

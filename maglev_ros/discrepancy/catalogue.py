@@ -10,7 +10,7 @@ plausible, and how to say it to a rail engineer.
 | control_delay | control | transport delay or first-order lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line; above 1/(2 pi tau) a delay turns the phase, a lag attenuates |
 | magnet_nonlinearity | magnetic_force | current headroom L / peak demand | saturating current (I0 + L tanh((I-I0)/L)): extra gap excursions where demand is high |
 | ambient_excitation | excitation | log10 modal force PSD | guideway vibration at its modes before entry and after exit (no vehicle) |
-| girder_stiffness_loss | guideway_structure | relative EI loss of one span | that span deflects more, its modes drop |
+| girder_stiffness_loss | guideway_structure | relative EI loss of one span, or of one zone (a quarter) of an instrumented span | that span deflects more, its modes drop (a zone: each mode by its curvature there) |
 | carbody_flexibility | vehicle_structure | car-body bending frequency [Hz] | vehicle accel band near the bending frequency |
 | sensor_error | instrumentation | scale, offset, drift of one channel (or a dropout) | one channel only, others agree with the twin |
 """
@@ -79,18 +79,25 @@ def _bearing(spec: ModelSpec, i: int, end: int, v: float) -> tuple:
     return tuple(tuple(x) for x in b)
 
 
+def _loss_plausible(of: str, max_loss: float, beyond: str) -> Callable[[np.ndarray], tuple[bool, str]]:
+    """A stiffness loss is a finding from 5 % (smaller is within the calibration's reach) up to
+    ``max_loss`` (beyond it the girder, or the zone ``of`` names, would not carry the line)."""
+    def plaus(p):
+        if p[0] < 0.05:
+            return False, f"fitted stiffness change {-p[0] * 100:+.0f} %{of} is not a loss of at least 5 %"
+        if p[0] > max_loss:
+            return False, f"fitted loss {p[0] * 100:.0f} %{of} {beyond}"
+        return True, ""
+    return plaus
+
+
 def girder_hypotheses(spec: ModelSpec, f1_hz: np.ndarray) -> list[Hypothesis]:
     out = []
     for i, s in enumerate(spec.spans):
         def apply(sp, p, i=i):
             return sp.with_(span_e_factor=_span_factor(sp, i, 1.0 - float(p[0])))
 
-        def plaus(p):
-            if p[0] < 0.05:
-                return False, f"fitted stiffness change {-p[0] * 100:+.0f} % is not a loss of at least 5 %"
-            if p[0] > 0.8:
-                return False, f"fitted loss {p[0] * 100:.0f} % is beyond a girder still in service"
-            return True, ""
+        plaus = _loss_plausible("", 0.8, "is beyond a girder still in service")
 
         def desc(p, sp, i=i, s=s):
             f_new = f1_hz[i] * math.sqrt(max(1 - p[0], 1e-6))
@@ -105,6 +112,45 @@ def girder_hypotheses(spec: ModelSpec, f1_hz: np.ndarray) -> list[Hypothesis]:
                               location={"position_m": [s.start_m, s.end_m], "span": s.span_id},
                               plausible=plaus, describe=desc,
                               band_hz=(0.5 * f1_hz[i], 1.05 * f1_hz[i])))
+    return out
+
+
+ZONES_PER_SPAN = 4   # quarters: a sensor at 1/8, 1/4, 1/2, 3/4 or 7/8 of a span sees each one's curvature
+
+
+def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray) -> list[Hypothesis]:
+    """A damaged zone (one quarter of the span, EI lowered there) on each span in ``span_indices``
+    (those with guideway sensors: the mode shapes they sample are what place a zone). A uniform
+    loss lowers every mode of the span by the same ratio; a zone lowers each mode by its curvature
+    there, so it is told from a changed E by the pattern of the span's modes."""
+    out = []
+    for i in span_indices:
+        s = spec.spans[i]
+        q = s.length_m / ZONES_PER_SPAN
+        for k in range(ZONES_PER_SPAN):
+            x0, x1 = k * q, (k + 1) * q
+
+            def apply(sp, p, i=i, x0=x0, x1=x1):
+                keep = tuple(z for z in sp.girder_zones if (z[0], z[1], z[2]) != (i, x0, x1))
+                return sp.with_(girder_zones=keep + ((i, x0, x1, 1.0 - float(p[0])),))
+
+            plaus = _loss_plausible(" of the zone", 0.9, "leaves no girder there")
+
+            def desc(p, sp, i=i, s=s, x0=x0, x1=x1):
+                from .model import guideway_modal
+                m = guideway_modal(sp)
+                f_new = float(m.freq_hz[m.span_index == i].min())
+                return (f"A zone of girder span {s.span_id} from {s.start_m + x0:.1f} to {s.start_m + x1:.1f} m is "
+                        f"about {p[0] * 100:.0f} % less stiff in bending (cracking, local prestress loss): the span "
+                        f"deflects more there and its first bending mode drops from about {f1_hz[i]:.1f} Hz to "
+                        f"{f_new:.1f} Hz, its higher modes by less.",
+                        {"span": s.span_id, "stiffness_loss": float(p[0]), "zone_m": [s.start_m + x0, s.start_m + x1],
+                         "first_mode_hz": f_new})
+            out.append(Hypothesis("girder_stiffness_loss", f"girder_stiffness_loss@{s.span_id}[{x0:.1f}-{x1:.1f} m]",
+                                  ("stiffness_loss",), (-0.3,), (0.9,), (0.5,), apply,
+                                  location={"position_m": [s.start_m + x0, s.start_m + x1], "span": s.span_id},
+                                  plausible=plaus, describe=desc, form="zone",
+                                  band_hz=(0.5 * f1_hz[i], 1.05 * f1_hz[i])))
     return out
 
 

@@ -89,6 +89,36 @@ class ModeDamping:
 
 
 @dataclass(frozen=True)
+class ExtraMode:
+    """An identified mode of the instrumented span that no twin mode of that span claims (each twin
+    mode below the twin's highest one + 10 % takes its nearest identified mode): physics the twin
+    leaves out, e.g. an attached component's own mode, or a torsional mode of the deck."""
+    freq_hz: float
+    damping_ratio: float
+    best_mac: float                     # best MAC with any twin mode of the span
+    symmetric_share: float | None       # shape energy in the left+right symmetric part (None: no L/R pairs)
+    mode_id: str
+    peak_ratio: float = 0.0             # spectral peak at it over the local level (best channel)
+    peak_needed: float = 0.0            # what the Welch estimate's own scatter allows by chance (3 std)
+
+    @property
+    def in_the_data(self) -> bool:
+        """The recording shows it: its spectral peak clears the PSD estimate's scatter (an SSI pole
+        without one is a numerical pole, whatever its stability)."""
+        return self.peak_ratio > self.peak_needed
+
+    @property
+    def vertical(self) -> bool:
+        """Not a torsional mode: left and right move together (or no pair says otherwise)."""
+        return self.symmetric_share is None or self.symmetric_share >= 0.5
+
+    def to_dict(self) -> dict:
+        return {"freq_hz": float(self.freq_hz), "damping_ratio": _f(self.damping_ratio), "best_mac": _f(self.best_mac),
+                "symmetric_share": _f(self.symmetric_share), "mode_id": self.mode_id, "vertical": self.vertical,
+                "peak_ratio": _f(self.peak_ratio), "peak_needed": _f(self.peak_needed), "in_the_data": self.in_the_data}
+
+
+@dataclass(frozen=True)
 class MeasuredDamping:
     """The guideway's Rayleigh ratio measured on an ambient recording (see the module docstring).
 
@@ -109,6 +139,7 @@ class MeasuredDamping:
     n_identified: int = 0
     source: str = ""
     identification: dict = field(default_factory=dict)
+    extra_modes: tuple[ExtraMode, ...] = ()     # identified modes of the span the twin does not have
 
     @property
     def twin_damping_ratio(self) -> float | None:
@@ -124,7 +155,8 @@ class MeasuredDamping:
                 "rayleigh_beta_s": _f(self.rayleigh_beta_s), "chi2": _f(self.chi2),
                 "modes": [m.to_dict() for m in self.modes], "channels": list(self.channels),
                 "n_identified": int(self.n_identified), "source": self.source,
-                "identification": dict(self.identification)}
+                "identification": dict(self.identification),
+                "extra_modes": [m.to_dict() for m in self.extra_modes]}
 
 
 def _not_measured(design: float, reason: str, rec: Recording | None, **kw) -> MeasuredDamping:
@@ -161,6 +193,59 @@ def _data(rec: Recording) -> tuple[np.ndarray, float, list[str]]:
     t = rec.channels[names[0]].time_s
     fs = (t.size - 1) / (t[-1] - t[0]) if t.size > 1 and t[-1] > t[0] else 0.0
     return np.stack([rec.channels[n].values for n in names], axis=1), float(fs), names
+
+
+def _extra_modes(res, d_ij: np.ndarray, m_ij: np.ndarray, twin_f: np.ndarray, rec: Recording, vert: list[str],
+                 col: list[int]) -> tuple[ExtraMode, ...]:
+    """Identified modes no twin mode of the span claims (each twin mode takes its nearest identified
+    one by the clustering distance), within the twin's own range (above its highest mode + 10 % the
+    twin has no modes to compare with)."""
+    claimed = {int(np.argmin(d_ij[:, j])) for j in range(d_ij.shape[1])}
+    f_id = res.frequencies_hz()
+    top = 1.1 * float(np.max(twin_f))
+    sides = rec.metadata.get("sensors", {}) or {}
+    pairs = {}
+    for k, n in enumerate(vert):
+        side = (sides.get(n) or {}).get("side")
+        if side in ("left", "right"):
+            pairs.setdefault(round(float(rec.channels[n].position_m), 3), {})[side] = col[k]
+    pairs = [(p["left"], p["right"]) for p in pairs.values() if len(p) == 2]
+    out = []
+    for i in range(len(res.modes)):
+        if i in claimed or not f_id[i] <= top:
+            continue
+        shape = np.asarray(res.complex_shapes[i])
+        share = None
+        if pairs:
+            lft, rgt = np.array([shape[a] for a, _ in pairs]), np.array([shape[b] for _, b in pairs])
+            tot = float(np.sum(np.abs(lft) ** 2 + np.abs(rgt) ** 2))
+            share = float(np.sum(np.abs(lft + rgt) ** 2) / (2 * tot)) if tot > 0 else None
+        m = res.modes[i]
+        ratio, needed = _spectral_peak(rec, vert, float(m.frequency_hz))
+        out.append(ExtraMode(float(m.frequency_hz), float(m.damping_ratio), float(np.max(m_ij[i])) if m_ij.size else 0.0,
+                             share, str(m.id), ratio, needed))
+    return tuple(out)
+
+
+def _spectral_peak(rec: Recording, names: list[str], f_hz: float) -> tuple[float, float]:
+    """(largest PSD within +-1 % of ``f_hz`` over the median PSD within +-10 %, best channel; the
+    ratio a Welch estimate of K segments reaches by chance: 1 + 3 / sqrt(K))."""
+    from scipy.signal import welch
+    best, needed = 0.0, np.inf
+    for n in names:
+        c = rec.channels[n]
+        x = c.values - np.mean(c.values)
+        nper = int(min(8192, max(256, x.size // 8)))
+        f, p = welch(x, c.sample_rate_hz, nperseg=nper)
+        df = f[1] - f[0]
+        near = np.abs(f - f_hz) <= max(0.01 * f_hz, 2 * df)
+        local = np.abs(f - f_hz) <= max(0.1 * f_hz, 10 * df)
+        if not near.any() or np.median(p[local]) <= 0:
+            continue
+        k = max(1, 2 * x.size // nper - 1)            # segments at 50 % overlap
+        best = max(best, float(p[near].max() / np.median(p[local])))
+        needed = 1.0 + 3.0 / math.sqrt(k)
+    return best, (needed if np.isfinite(needed) else 0.0)
 
 
 def _cluster_spread(res, k: int) -> float | None:
@@ -263,6 +348,8 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec) -> MeasuredDampi
                                  std_damping_ratio=sz, cluster_std_damping_ratio=cs,
                                  mac=float(m_ij[best, jj]), mode_id=m.id, reason=why))
     modes = tuple(modes)
+    if n_id and x.size:
+        common["extra_modes"] = _extra_modes(res, d_ij, m_ij, twin_f, ambient, vert, col)
 
     # 3. one Rayleigh ratio from the measured modes
     used = [m for m in modes if m.matched and m.std_damping_ratio is not None]
@@ -300,4 +387,4 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec) -> MeasuredDampi
         reason = (f"measured {100 * zeta:.2f} +- {100 * std:.2f} % from {which}{alone}: within "
                   f"{Z_REJECT:g} std of the design's {100 * design:.2f} %, design damping kept")
     return MeasuredDamping(zeta, std, float(design), modes, bool(applied), reason, sp.span_id, alpha, beta, chi2,
-                           tuple(names), len(res.modes), ambient.name, ident)
+                           tuple(names), len(res.modes), ambient.name, ident, common.get("extra_modes", ()))

@@ -59,7 +59,7 @@ def resonator_explainable(d: dict) -> bool:
     """A located finding an added girder resonator could explain: on a span, sensed by the
     guideway, with a band reaching above ``RESONATOR_MIN_HZ``."""
     return (d["location"].get("span") is not None and d.get("sensed_on") != "vehicle"
-            and d["frequency_hz"][1] > RESONATOR_MIN_HZ)
+            and d.get("kind") != "torsional_mode" and d["frequency_hz"][1] > RESONATOR_MIN_HZ)
 
 
 def _span_of(x, spans):
@@ -337,6 +337,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                                      f"{best[0].span_id} at "
                                      f"{'(rigid)' if best[0].resonator.rigid else f'{best[0].resonator.freq_hz:.1f} Hz'}"]
         if d["model"]["accepted"]:
+            d["_fit"] = rf            # for the caller's twin after (not JSON: popped before the report)
             # the finding is now the modelled resonator: its band is where the resonator lives; the
             # band where the residual showed (e.g. an existing mode it detunes) is kept beside it
             d["kind"] = "added_resonator"

@@ -6,8 +6,9 @@ recorded vehicle position/speed and returns each measured channel's prediction o
 stamps. Extensions that need a hook inside the twin are built here from the twin's public
 pieces, without changing the twin files:
 
-- per-end bearing stiffness: :func:`maglev_ros.twin.guideway.assemble_span` with ``kb_ends`` (one
-  stiffness per end) replaces the span FE models of the stepper's ``Guideway``;
+- per-end bearing stiffness and damaged girder zones: :func:`maglev_ros.twin.guideway.assemble_span`
+  with ``kb_ends`` (one stiffness per end) and ``ei_factors`` (one EI factor per element) replaces
+  the span FE models of the stepper's ``Guideway``;
 - car-body bending: :func:`flexible_vehicle` adds one free-free bending DOF of the car body to the
   twin's assembled rigid 18-DOF ``VehicleModel`` (secondary springs see psi(x) eta);
 - control delay, two forms: a transport delay (the law acts on measurements tau old: sampling,
@@ -53,6 +54,8 @@ class ModelSpec:
     cal: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)          # ln factors of CAL_PARAMS
     span_e_factor: tuple[float, ...] = ()                   # per span (girder_stiffness_loss)
     bearing_factor: tuple[tuple[float, float], ...] = ()    # per span (left, right) kb factors
+    # damaged zones: (span index, start, end from the span's start [m], EI factor) (girder_stiffness_loss)
+    girder_zones: tuple[tuple[int, float, float, float], ...] = ()
     control_lag_s: float = 0.0                              # first-order lag of the current [s]
     control_delay_s: float = 0.0                            # transport delay of the control law [s]
     carbody_bend_hz: float | None = None
@@ -186,13 +189,9 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
                      start_position_m=start_position_m, start_speed_mps=start_speed_mps,
                      t0_s=t0_s, init="rest", current_limit_a=spec.current_limit_a)
     changed = False
-    if spec.bearing_factor and any(f != (1.0, 1.0) for f in spec.bearing_factor):
-        fes = list(st.guideway.spans_fe)
-        for i, (fl, fr) in enumerate(spec.bearing_factor):
-            if (fl, fr) != (1.0, 1.0):
-                kb = spans[i].props.bearing_stiffness_n_per_m
-                fes[i] = assemble_span(spans[i], cfg.numerics.n_elements_per_span, kb_ends=(kb * fl, kb * fr))
-        st.guideway.spans_fe = tuple(fes)
+    own = _own_span_fes(spec, spans, cfg.numerics.n_elements_per_span)
+    if own:
+        st.guideway.spans_fe = tuple(own.get(i, fe) for i, fe in enumerate(st.guideway.spans_fe))
         changed = True
     if changed:
         st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
@@ -225,14 +224,36 @@ def guideway_modal(spec: ModelSpec):
     cfg = spec.effective_config()
     spans = spec.effective_spans()
     gw = Guideway(spans, cfg.numerics.n_elements_per_span)
-    if spec.bearing_factor:
-        fes = list(gw.spans_fe)
-        for i, (fl, fr) in enumerate(spec.bearing_factor):
-            if (fl, fr) != (1.0, 1.0):
-                kb = spans[i].props.bearing_stiffness_n_per_m
-                fes[i] = assemble_span(spans[i], cfg.numerics.n_elements_per_span, kb_ends=(kb * fl, kb * fr))
-        gw.spans_fe = tuple(fes)
+    own = _own_span_fes(spec, spans, cfg.numerics.n_elements_per_span)
+    if own:
+        gw.spans_fe = tuple(own.get(i, fe) for i, fe in enumerate(gw.spans_fe))
     return gw.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+
+
+def zone_element_factors(length_m: float, n_elements: int, zones) -> np.ndarray:
+    """EI factor per element of a span with damaged ``zones`` ((start, end) from the span's start
+    [m], EI factor): an element partly in a zone gets the factor in proportion to its overlap."""
+    le = length_m / n_elements
+    f = np.ones(n_elements)
+    for x0, x1, fac in zones:
+        lo, hi = np.arange(n_elements) * le, (np.arange(n_elements) + 1) * le
+        share = np.clip(np.minimum(hi, x1) - np.maximum(lo, x0), 0.0, None) / le
+        f *= 1.0 - share * (1.0 - fac)
+    return f
+
+
+def _own_span_fes(spec: ModelSpec, spans, n_elements: int) -> dict:
+    """Span index -> FE model of the spans whose bearings or damaged zones differ from the line's."""
+    out = {}
+    for i, sp in enumerate(spans):
+        fl, fr = spec.bearing_factor[i] if i < len(spec.bearing_factor) else (1.0, 1.0)
+        zones = [(x0, x1, f) for j, x0, x1, f in spec.girder_zones if j == i]
+        if (fl, fr) == (1.0, 1.0) and not zones:
+            continue
+        kb = sp.props.bearing_stiffness_n_per_m
+        out[i] = assemble_span(sp, n_elements, kb_ends=(kb * fl, kb * fr),
+                               ei_factors=zone_element_factors(sp.length_m, n_elements, zones) if zones else None)
+    return out
 
 
 # terms of a force per air spring, as functions of its deflection d [m] (> 0 compresses it) and rate

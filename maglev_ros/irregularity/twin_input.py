@@ -280,7 +280,7 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
 
 
 def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=None, *,
-                     highpass_hz: float = 0.8, spacing_m: float = 0.02,
+                     highpass_hz: float | None = 0.8, spacing_m: float = 0.02,
                      min_wavelength_m: float | None = None, max_wavelength_m: float | None = None,
                      band_speed_mps: float | None = None, magnets: Sequence[int] | None = None,
                      channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
@@ -295,11 +295,13 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     come from it) or a plain list of magnet offsets [m]. ``config``/``line``: the twin
     (``TwinConfig`` and the metadata ``line`` block / spans) whose deflection is removed.
     ``max_iterations``: twin runs at most (0 returns the loaded profile, tagged as such in the
-    warnings). Extra keyword arguments go to :class:`InertialProfiler`.
+    warnings). ``highpass_hz`` None: the corner follows the pass as the irregularity verb chooses it
+    (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. Extra keyword
+    arguments go to :class:`InertialProfiler`.
     """
     offs, g0, pairs = _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs)
-    if not highpass_hz > 0:
-        raise UserError(f"highpass_hz: expected > 0 Hz, got {highpass_hz}")
+    if highpass_hz is not None and not highpass_hz > 0:
+        raise UserError(f"highpass_hz: expected > 0 Hz or None (follow the pass), got {highpass_hz}")
     if not (max_iterations >= 0):
         raise UserError(f"max_iterations: expected >= 0, got {max_iterations}")
     tau = float(sensor_delay_s)
@@ -308,7 +310,7 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     prof = InertialProfiler(highpass_hz=highpass_hz, spacing_m=spacing_m, magnets=magnets,
                             magnet_length_m=0.0, min_wavelength_m=min_wavelength_m,
                             max_wavelength_m=max_wavelength_m, band_speed_mps=band_speed_mps,
-                            edge_s=(1.5 / highpass_hz) if edge_s is None else edge_s,
+                            edge_s=(1.5 / highpass_hz) if edge_s is None and highpass_hz is not None else edge_s,
                             **profiler_kwargs)
     fit_kw = dict(magnet_offsets_m=offs, nominal_gap_m=g0, channel_pairs=pairs)
     loaded = prof.fit(accel, gap, pos_sh, **fit_kw)

@@ -113,14 +113,18 @@ class SpanFE:
 
 
 def assemble_span(span: SpanSpec, n_elements: int = 16,
-                  kb_ends: tuple[float, float] | None = None) -> SpanFE:
+                  kb_ends: tuple[float, float] | None = None, ei_factors=None) -> SpanFE:
     """FE model of one span on its two vertical bearings, with Rayleigh damping on modes 1-2.
 
     ``kb_ends`` (start, end) overrides the span's bearing stiffness per end (e.g. one degraded
-    bearing); ``inf`` at an end is a rigid support there.
+    bearing); ``inf`` at an end is a rigid support there. ``ei_factors``: one factor on the bending
+    stiffness per element, from the span's start (e.g. a damaged zone); the mass is unchanged.
     """
     if n_elements < 2:
         raise UserError(f"n_elements_per_span: expected >= 2, got {n_elements}")
+    fac = np.ones(n_elements) if ei_factors is None else np.asarray(ei_factors, float)
+    if fac.shape != (n_elements,) or not np.all(fac > 0):
+        raise UserError(f"ei_factors: expected {n_elements} positive factors, got {np.shape(fac)}")
     p = span.props
     le = span.length_m / n_elements
     ke, me = beam_element(p.bending_stiffness_n_m2, p.mass_per_length_kg_m, le)
@@ -129,7 +133,7 @@ def assemble_span(span: SpanSpec, n_elements: int = 16,
     M = np.zeros((ndof, ndof))
     for e in range(n_elements):
         s = slice(2 * e, 2 * e + 4)
-        K[s, s] += ke
+        K[s, s] += ke * fac[e]
         M[s, s] += me
     kb = p.bearing_stiffness_n_per_m
     removed = []

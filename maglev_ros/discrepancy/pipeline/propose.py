@@ -1,0 +1,153 @@
+"""Stage 3, propose: which physics to fit in full, from the catalogue, ranked by what it explains.
+
+Every hypothesis the recordings can test (:func:`catalogue_hypotheses`) is screened at a trial
+value with the calibrated parameters projected (one simulation each); fitted in full are the best
+``n_top``, the best of every further effect and form, and every girder/bearing hypothesis of the
+spans whose sensors the strongest guideway mismatches name (locate, then explain). Hypotheses that
+need no simulation (sensor faults, ambient vibration) are all fitted.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from maglev_ros.progress import NULL, Progress
+
+from .. import catalogue as cat
+from ..evaluate import RecData, ambient_shape
+from ..fitting import BaseFit, screen
+from ..model import ModelSpec, guideway_modal
+from ..recording import GROUP_UNIT, Recording
+from .calibrate import Calibration
+from .localize import Localization
+
+
+@dataclass(frozen=True, eq=False)
+class Proposal:
+    simulated: list                    # every hypothesis that needs the twin run
+    screened: list                     # (training RSS at the trial value, hypothesis), best first
+    fitted_in_full: list               # the simulated ones to fit in full
+    cheap: list                        # the ones without simulation (all fitted)
+    untestable: list[dict]             # {effect, label, why}: the twin failed at the trial value
+    span_of: dict                      # guideway channel -> span id
+    flagged_spans: set                 # spans the strongest guideway mismatches name
+
+
+def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL) -> Proposal:
+    base, rd_train = cal.base, cal.data.rd_train
+    hyps = catalogue_hypotheses(base, rd_train)
+    tried = []
+    physics = [h for h in hyps if h.needs_sim]
+    cheap = [h for h in hyps if not h.needs_sim]
+    screened = []
+    progress.stage("screen catalogue hypotheses", total=len(physics))
+    for h in physics:
+        try:
+            screened.append((screen(base, h, rd_train), h))
+        except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
+            tried.append({"effect": h.effect, "label": h.label, "why": f"twin failed at trial value ({exc})"})
+        progress.advance(note=h.label)
+    screened.sort(key=lambda t: t[0])
+    # the best-screened hypotheses, and the best of every further effect (screening at a trial value
+    # ranks effects with very different footprints: a bearing at 30 % of its stiffness ranked below
+    # the four vehicle/girder ones and was never fitted)
+    # Also every girder/bearing hypothesis of the spans whose sensors the strongest guideway
+    # mismatches name (locate, then explain: the same bearing case's screening preferred the
+    # wrong end of the right span)
+    phys = [h for _, h in screened[:config.n_top]]
+    span_of = guideway_spans(rd_train[0].rec, base.spec)
+    flagged = {span_of[c] for m in [m for m in loc.found if m.group.startswith("guideway")][:3]
+               for c in m.channels if c in span_of}
+    for _, h in (screened[config.n_top:] if config.fit_every_effect else []):
+        if (h.effect, h.form) not in {(p.effect, p.form) for p in phys} or h.location.get("span") in flagged:
+            phys.append(h)
+    return Proposal(physics, screened, phys, cheap, tried, span_of, flagged)
+
+
+def catalogue_hypotheses(base: BaseFit, rds: list[RecData]) -> list[cat.Hypothesis]:
+    """Every catalogue hypothesis the recordings can test (structure of the measured spans, the
+    levitation loop when magnets are measured, the car body when it is, ambient vibration when the
+    guideway is, a fault of each channel)."""
+    spec = base.spec
+    rec = rds[0].rec
+    modal = guideway_modal(spec)
+    f1 = np.array([modal.freq_hz[modal.span_index == i].min() for i in range(len(spec.spans))])
+    veh = rec.names("vehicle_accel") + rec.names("gap")
+    body = rec.names("body_accel")
+    gw = rec.names("guideway_accel") + rec.names("guideway_disp")
+    hyps, _ = structural_hypotheses(spec, rec, f1)
+    if veh:
+        fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
+        hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
+        demand = current_demand_a(spec, rds)
+        if demand > 0:
+            hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,
+                                                            spec.config.levitation.static_current_a))
+    if body:
+        hyps.append(cat.carbody_hypothesis(body + veh))
+    if gw:
+        rd = rds[0]
+        shape = ambient_shape(spec, rd)
+
+        fc = np.maximum(rd.grid.band_center_hz, 1.0)
+
+        def rms_of(lg, slope, shape=shape, fc=fc):
+            return {n: float(math.sqrt((10 ** lg) * np.sum(s * (fc / 20.0) ** slope))) for n, s in shape.items()
+                    if rd.rec.channels[n].group == "guideway_accel"}
+        hyps.append(cat.ambient_hypothesis(gw, rms_of))
+    for n, ch in rec.channels.items():
+        if ch.group == "body_accel":
+            # not tested: a car-body channel is compared through its ratio to the magnets above
+            # 3 Hz, which holds ~17 % model error (a clean case fitted a 1.18 scale; an
+            # offset/drift fit reached those bands only through window leakage)
+            continue
+        noise = float(np.sqrt(np.sum(rds[0].noise[n][rds[0].masks[n]])))
+        hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
+    return hyps
+
+
+def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray) -> tuple[list, list[str]]:
+    """(girder and bearing hypotheses, ids of the spans left untested) for a recording: a span's
+    structure is tested where guideway sensors measure that span. The vehicle channels alone cannot
+    tell a span's stiffness from the rail they themselves reconstruct (the loaded -> unloaded step
+    removes the twin's deflection): on a clean foreign line a 74 % "loss" of an unmeasured span traded
+    for the rail's long-wave error on the magnets. Every measured span gets a uniform loss, a damaged
+    zone per quarter and a bearing at each end."""
+    seen = set(guideway_spans(rec, spec).values())
+    hyps = [h for h in cat.girder_hypotheses(spec, f1_hz) + cat.bearing_hypotheses(spec)
+            if h.location.get("span") in seen]
+    hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
+    return hyps, [s.span_id for s in spec.spans if s.span_id not in seen]
+
+
+def guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "guideway_disp")) -> dict:
+    """Guideway channel -> the id of the span holding it."""
+    out = {}
+    for n, c in rec.channels.items():
+        if c.group in groups and c.position_m is not None:
+            for sp in spec.spans:
+                if sp.start_m <= c.position_m <= sp.end_m:
+                    out[n] = sp.span_id
+                    break
+    return out
+
+
+def current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
+    """Largest |I - I0| of the calibrated twin's magnets on the training passes while the vehicle is
+    over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
+    reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
+    2.7 A), and a saturation limit relative to it could not come down to the true one."""
+    from ..irregularity import vehicle_over_valid
+    from ..model import simulate
+    peak = 0.0
+    for rd in rds:
+        res = simulate(spec, rd.rec)
+        if res is None or res.magnet_current_a.size == 0:
+            continue
+        ok = vehicle_over_valid(rd.rec, res.time_s, spec.effective_config().vehicle.magnet_offsets_m)
+        dI = np.abs(res.magnet_current_a[ok] - spec.config.levitation.static_current_a)
+        if dI.size:
+            peak = max(peak, float(dI.max()))
+    return peak

@@ -39,16 +39,18 @@ class DiagnoseConfig:
     dropout_min_s: float = 0.1
     dt_max_s: float | None = None     # integration step of the diagnosing twin (None: design numerics)
     irregularity: bool = True         # drive the twin with the irregularity reconstructed from each pass
-    # the diagnosing twin's rail: reconstructed from each pass with the irregularity verb's own rule
-    # (corner from the pass's clean moving stretch, band to speed / (2 corner), edges 0.6 / corner;
-    # docs/irregularity.md). A fixed 0.6 Hz with the band reaching the corner itself (band factor 1)
-    # cut a slow foreign pass's 1-5 m waves to 30-45 % error and its magnets' floor to NRMSE 0.3-0.4;
-    # with the pass's rule the error there was 3-8 % and the magnets' NRMSE 0.18-0.19 (the true rail:
-    # 0.03). None: follow the pass; a number fixes the corner [Hz]
-    irregularity_highpass_hz: float | None = None
-    irregularity_band_factor: float = 2.0
-    irregularity_trim_wavelengths: float = 1.0
-    irregularity_edge_s: float | None = None
+    # the diagnosing twin's rail keeps the long waves that drive the car body (0-6 Hz): time high-pass
+    # 0.6 Hz, longest wave = pass speed / (band_factor x high-pass), the band-pass edge trimmed by
+    # trim_wavelengths of it at each end and edge_s seconds dropped at the ends of each stretch (the
+    # profiler's stated-band defaults 0.8 Hz / 2.0 / 1.0 / 1.5 / f_c cut the 15-60 m waves: on clean
+    # cases the body channels' NRMSE was 0.4-0.7, 0.03-0.06 with the true rail; docs/irregularity.md).
+    # The irregularity verb's own rule (corner from the pass, band factor 2; None here) cut a slow
+    # foreign pass's magnet misfit from 0.38 to 0.17 but raised fast passes' car-body misfit (a cubic
+    # air spring no longer found): a rule serving both is open
+    irregularity_highpass_hz: float | None = 0.6
+    irregularity_band_factor: float = 1.0
+    irregularity_trim_wavelengths: float = 0.5
+    irregularity_edge_s: float | None = 1.875
     base_refit_nfev: int = 4          # calibration steps after the irregularity is rebuilt
     # besides the n_top best-screened: the best of every further effect and every girder/bearing
     # hypothesis of the spans the strongest guideway mismatches name (False: the n_top only)

@@ -35,8 +35,10 @@ def _line_with_sensors_on(span_ids):
 def test_structure_is_tested_only_on_spans_with_guideway_sensors():
     md, rec = _line_with_sensors_on(["S3"])
     spec = base_spec(md)
-    hyps, unseen = structural_hypotheses(spec, rec, np.full(5, 25.0))
+    hyps, unseen = structural_hypotheses(spec, rec, np.full(5, 25.0), zones=True)
     assert unseen == ["S1", "S2", "S4", "S5"]
+    # zones only when asked for
+    assert not [h for h in structural_hypotheses(spec, rec, np.full(5, 25.0))[0] if h.form == "zone"]
     assert {h.location["span"] for h in hyps} == {"S3"}
     kinds = sorted((h.effect, h.form) for h in hyps)
     # a uniform loss, a zone per quarter, a bearing at each end

@@ -37,7 +37,7 @@ class Proposal:
 
 def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL) -> Proposal:
     base, rd_train = cal.base, cal.data.rd_train
-    hyps = catalogue_hypotheses(base, rd_train)
+    hyps = catalogue_hypotheses(base, rd_train, zones=config.girder_zones)
     tried = []
     physics = [h for h in hyps if h.needs_sim]
     cheap = [h for h in hyps if not h.needs_sim]
@@ -66,10 +66,10 @@ def propose(cal: Calibration, loc: Localization, config, progress: Progress = NU
     return Proposal(physics, screened, phys, cheap, tried, span_of, flagged)
 
 
-def catalogue_hypotheses(base: BaseFit, rds: list[RecData]) -> list[cat.Hypothesis]:
-    """Every catalogue hypothesis the recordings can test (structure of the measured spans, the
-    levitation loop when magnets are measured, the car body when it is, ambient vibration when the
-    guideway is, a fault of each channel)."""
+def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False) -> list[cat.Hypothesis]:
+    """Every catalogue hypothesis the recordings can test (structure of the measured spans, with damaged
+    zones when ``zones``, the levitation loop when magnets are measured, the car body when it is,
+    ambient vibration when the guideway is, a fault of each channel)."""
     spec = base.spec
     rec = rds[0].rec
     modal = guideway_modal(spec)
@@ -77,7 +77,7 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData]) -> list[cat.Hypothes
     veh = rec.names("vehicle_accel") + rec.names("gap")
     body = rec.names("body_accel")
     gw = rec.names("guideway_accel") + rec.names("guideway_disp")
-    hyps, _ = structural_hypotheses(spec, rec, f1)
+    hyps, _ = structural_hypotheses(spec, rec, f1, zones)
     if veh:
         fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
         hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
@@ -108,17 +108,19 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData]) -> list[cat.Hypothes
     return hyps
 
 
-def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray) -> tuple[list, list[str]]:
+def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray,
+                          zones: bool = False) -> tuple[list, list[str]]:
     """(girder and bearing hypotheses, ids of the spans left untested) for a recording: a span's
     structure is tested where guideway sensors measure that span. The vehicle channels alone cannot
     tell a span's stiffness from the rail they themselves reconstruct (the loaded -> unloaded step
     removes the twin's deflection): on a clean foreign line a 74 % "loss" of an unmeasured span traded
-    for the rail's long-wave error on the magnets. Every measured span gets a uniform loss, a damaged
-    zone per quarter and a bearing at each end."""
+    for the rail's long-wave error on the magnets. Every measured span gets a uniform loss, a bearing
+    at each end and, with ``zones``, a damaged zone per quarter."""
     seen = set(guideway_spans(rec, spec).values())
     hyps = [h for h in cat.girder_hypotheses(spec, f1_hz) + cat.bearing_hypotheses(spec)
             if h.location.get("span") in seen]
-    hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
+    if zones:
+        hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
     return hyps, [s.span_id for s in spec.spans if s.span_id not in seen]
 
 

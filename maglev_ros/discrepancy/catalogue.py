@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .model import ModelSpec
+from .model import ModelSpec, guideway_modal
 
 CATEGORIES = ("boundary_condition", "control", "magnetic_force", "excitation", "guideway_structure",
               "vehicle_structure", "suspension", "instrumentation", "other")
@@ -60,7 +60,7 @@ class Hypothesis:
     describe: Callable[[np.ndarray, ModelSpec], tuple[str, dict]] = lambda p, s: ("", {})
     band_hz: tuple[float, float] | None = None
     log_search: bool = False                     # scale-like parameter: search on a geometric grid
-    form: str = ""                               # one of several models of the same effect (control_delay)
+    form: str = ""                               # one of several models of one effect (delay/lag, zone)
 
     @property
     def category(self) -> str:
@@ -137,7 +137,6 @@ def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray) -> 
             plaus = _loss_plausible(" of the zone", 0.9, "leaves no girder there")
 
             def desc(p, sp, i=i, s=s, x0=x0, x1=x1):
-                from .model import guideway_modal
                 m = guideway_modal(sp)
                 f_new = float(m.freq_hz[m.span_index == i].min())
                 return (f"A zone of girder span {s.span_id} from {s.start_m + x0:.1f} to {s.start_m + x1:.1f} m is "

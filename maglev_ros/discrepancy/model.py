@@ -234,9 +234,9 @@ def zone_element_factors(length_m: float, n_elements: int, zones) -> np.ndarray:
     """EI factor per element of a span with damaged ``zones`` ((start, end) from the span's start
     [m], EI factor): an element partly in a zone gets the factor in proportion to its overlap."""
     le = length_m / n_elements
+    lo, hi = np.arange(n_elements) * le, (np.arange(n_elements) + 1) * le
     f = np.ones(n_elements)
     for x0, x1, fac in zones:
-        lo, hi = np.arange(n_elements) * le, (np.arange(n_elements) + 1) * le
         share = np.clip(np.minimum(hi, x1) - np.maximum(lo, x0), 0.0, None) / le
         f *= 1.0 - share * (1.0 - fac)
     return f

@@ -126,40 +126,17 @@ class VehicleStateSpace:
 
 def closed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpace:
     """Linear closed-loop vehicle with the rail displacement at the magnets as input."""
+    if not lev.has_coil:
+        return _law_loop(vehicle, lev)
+    # coil dynamics: x = [z, z', dI]
     n, m = vehicle.n_dof, vehicle.n_magnets
     M, C, K, Bm = vehicle.mass, vehicle.damping, vehicle.stiffness, vehicle.magnet_input
     p = lev.partials()
     Z = np.zeros
     I_n = np.eye(n)
-    if lev.control_delay_s > 0:
-        return _delayed_loop(vehicle, lev)
-    if not lev.has_coil:
-        kg, cg, ma = p.df_dgap_n_per_m, p.df_dgap_rate_n_s_per_m, -p.df_daccel_n_s2_per_m
-        Mp = M + Bm @ np.diag(ma) @ Bm.T
-        Cp = C + Bm @ np.diag(cg) @ Bm.T
-        Kp = K + Bm @ np.diag(kg) @ Bm.T
-        Mi = np.linalg.inv(Mp)
-        acc_x = np.hstack([-Mi @ Kp, -Mi @ Cp])                       # DOF accel from state
-        acc_u = np.hstack([Mi @ Bm @ np.diag(kg), Mi @ Bm @ np.diag(cg), Mi @ Bm])
-        A = np.vstack([np.hstack([Z((n, n)), I_n]), acc_x])
-        B = np.vstack([Z((n, 3 * m)), acc_u])
-        nx = 2 * n
-        cz = np.hstack([Bm.T, Z((m, n))])
-        czd = np.hstack([Z((m, n)), Bm.T])
-        ca, da = Bm.T @ acc_x, Bm.T @ acc_u
-        # dI = kp dgap + kv dgap' - ka a, dgap = y - z_m
-        sel_y = np.hstack([np.eye(m), Z((m, 2 * m))])
-        sel_yd = np.hstack([Z((m, m)), np.eye(m), Z((m, m))])
-        ci = -lev.kp_a_per_m * cz - lev.kv_a_s_per_m * czd - lev.ka_a_s2_per_m * ca
-        di = lev.kp_a_per_m * sel_y + lev.kv_a_s_per_m * sel_yd - lev.ka_a_s2_per_m * da
-        zero_d = Z((m, 3 * m))
-        return VehicleStateSpace(A, B, n, m, False, (cz, zero_d), (czd, zero_d), (ca, da), (ci, di),
-                                 (acc_x, acc_u))
-    # coil dynamics: x = [z, z', dI]
     ki, kgap = p.df_dcurrent_n_per_a, -p.df_dgap_fixed_current_n_per_m
     Kt = K - Bm @ np.diag(kgap) @ Bm.T
     Mi = np.linalg.inv(M)
-    nx = 2 * n + m
     acc_x = np.hstack([-Mi @ Kt, -Mi @ C, Mi @ Bm @ np.diag(ki)])
     acc_u = np.hstack([-Mi @ Bm @ np.diag(kgap), Z((n, m)), Mi @ Bm])
     cz = np.hstack([Bm.T, Z((m, n)), Z((m, m))])
@@ -178,35 +155,45 @@ def closed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpac
                              (acc_x, acc_u))
 
 
-def _delayed_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpace:
-    """Closed loop with the control law's transport delay (module docstring): x = [z, z', xi_1, xi_2]."""
+def _law_loop(vehicle: VehicleModel, lev: LevitationModel) -> VehicleStateSpace:
+    """Closed loop with the current given by the control law, on time or ``control_delay_s`` late
+    (module docstring): x = [z, z'] or, with the delay, [z, z', xi_1, xi_2]."""
     n, m = vehicle.n_dof, vehicle.n_magnets
     M, C, K, Bm = vehicle.mass, vehicle.damping, vehicle.stiffness, vehicle.magnet_input
     p = lev.partials()
     Z = np.zeros
     tau = lev.control_delay_s
-    a1, a2 = tau / 2.0, tau * tau / 12.0
+    nd = 2 * m if tau > 0 else 0                       # the all-pass states
     kg, cg, ma, ki = p.df_dgap_n_per_m, p.df_dgap_rate_n_s_per_m, -p.df_daccel_n_s2_per_m, p.df_dcurrent_n_per_a
-    # F - F0 = kg dgap + cg dgap' - ma a_m + N - ki tau xi_2 (the law through the force, less the all-pass part)
+    # F - F0 = kg dgap + cg dgap' - ma a_m + N (- ki tau xi_2: the law through the force, less the all-pass part)
     Mp = M + Bm @ np.diag(ma) @ Bm.T
     Mi = np.linalg.inv(Mp)
     Kp = K + Bm @ np.diag(kg) @ Bm.T
     Cp = C + Bm @ np.diag(cg) @ Bm.T
-    acc_x = np.hstack([-Mi @ Kp, -Mi @ Cp, Z((n, m)), -Mi @ Bm @ np.diag(ki * tau)])
+    late = [Z((n, m)), -Mi @ Bm @ np.diag(ki * tau)] if nd else []
+    acc_x = np.hstack([-Mi @ Kp, -Mi @ Cp, *late])                   # DOF accel from state
     acc_u = np.hstack([Mi @ Bm @ np.diag(kg), Mi @ Bm @ np.diag(cg), Mi @ Bm])
-    cz = np.hstack([Bm.T, Z((m, n)), Z((m, 2 * m))])
-    czd = np.hstack([Z((m, n)), Bm.T, Z((m, 2 * m))])
+    cz = np.hstack([Bm.T, Z((m, n)), Z((m, nd))])
+    czd = np.hstack([Z((m, n)), Bm.T, Z((m, nd))])
     ca, da = Bm.T @ acc_x, Bm.T @ acc_u
+    # law: dI = kp dgap + kv dgap' - ka a, dgap = y - z_m
     sel_y = np.hstack([np.eye(m), Z((m, 2 * m))])
     sel_yd = np.hstack([Z((m, m)), np.eye(m), Z((m, m))])
-    xi1 = np.hstack([Z((m, 2 * n)), np.eye(m), Z((m, m))])
-    xi2 = np.hstack([Z((m, 2 * n)), Z((m, m)), np.eye(m)])
     law_x = -lev.kp_a_per_m * cz - lev.kv_a_s_per_m * czd - lev.ka_a_s2_per_m * ca
     law_u = lev.kp_a_per_m * sel_y + lev.kv_a_s_per_m * sel_yd - lev.ka_a_s2_per_m * da
-    A = np.vstack([np.hstack([Z((n, n)), np.eye(n), Z((n, 2 * m))]), acc_x, xi2, (law_x - xi1 - a1 * xi2) / a2])
-    B = np.vstack([Z((n, 3 * m)), acc_u, Z((m, 3 * m)), law_u / a2])
-    return VehicleStateSpace(A, B, n, m, False, (cz, Z((m, 3 * m))), (czd, Z((m, 3 * m))), (ca, da),
-                             (law_x - tau * xi2, law_u), (acc_x, acc_u))
+    rows_x = [np.hstack([Z((n, n)), np.eye(n), Z((n, nd))]), acc_x]
+    rows_u = [Z((n, 3 * m)), acc_u]
+    ci = law_x
+    if nd:
+        a1, a2 = tau / 2.0, tau * tau / 12.0
+        xi1 = np.hstack([Z((m, 2 * n)), np.eye(m), Z((m, m))])
+        xi2 = np.hstack([Z((m, 2 * n)), Z((m, m)), np.eye(m)])
+        rows_x += [xi2, (law_x - xi1 - a1 * xi2) / a2]
+        rows_u += [Z((m, 3 * m)), law_u / a2]
+        ci = law_x - tau * xi2
+    zero_d = Z((m, 3 * m))
+    return VehicleStateSpace(np.vstack(rows_x), np.vstack(rows_u), n, m, False, (cz, zero_d), (czd, zero_d),
+                             (ca, da), (ci, law_u), (acc_x, acc_u))
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ class Proposal:
     untestable: list[dict]             # {effect, label, why}: the twin failed at the trial value
     span_of: dict                      # guideway channel -> span id
     flagged_spans: set                 # spans the strongest guideway mismatches name
+    unmeasured_spans: list[str]        # spans no guideway sensor measures: their structure is untested
 
 
 def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL) -> Proposal:
@@ -63,7 +64,8 @@ def propose(cal: Calibration, loc: Localization, config, progress: Progress = NU
     for _, h in (screened[config.n_top:] if config.fit_every_effect else []):
         if (h.effect, h.form) not in {(p.effect, p.form) for p in phys} or h.location.get("span") in flagged:
             phys.append(h)
-    return Proposal(physics, screened, phys, cheap, tried, span_of, flagged)
+    unmeasured = [s.span_id for s in base.spec.spans if s.span_id not in set(span_of.values())]
+    return Proposal(physics, screened, phys, cheap, tried, span_of, flagged, unmeasured)
 
 
 def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False) -> list[cat.Hypothesis]:

@@ -30,7 +30,7 @@ from .discover import Discovery
 from .fit import RECALIBRATED, Fits
 from .judge import Judgement
 from .localize import Localization
-from .propose import Proposal, structural_hypotheses
+from .propose import Proposal
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -47,11 +47,11 @@ class Diagnosis:
 def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config) -> list[dict]:
     """Every hypothesis tried that was not chosen, and what these recordings cannot test, with why."""
     cfg = config
-    base, rd_all, rd_train = cal.base, cal.data.rd_all, cal.data.rd_train
+    rd_all = cal.data.rd_all
     fits, chosen, same_heldout = jd.fits, jd.chosen, cal.same_heldout
     screened, phys, tried, n_eff = prop.screened, prop.fitted_in_full, fr.untestable, fr.n_eff
     rejected = []
-    unseen = structural_hypotheses(base.spec, rd_train[0].rec, np.ones(len(base.spec.spans)))[1]
+    unseen = prop.unmeasured_spans
     if unseen:
         rejected.append({"effect": "girder_stiffness_loss", "why": (
             f"not testable on span(s) {', '.join(unseen)} (nor their bearings, bearing_stiffness): no guideway "

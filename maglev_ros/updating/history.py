@@ -50,8 +50,12 @@ def damaged_path(path: str | os.PathLike) -> Path:
     return path.with_name((path.stem if path.suffix == ".jsonl" else path.name) + ".damaged.jsonl")
 
 
+class _NonFinite(ValueError):
+    pass
+
+
 def _reject_constant(name: str):
-    raise ValueError(f"non-finite number {name}")
+    raise _NonFinite(f"non-finite number {name} (JSON has none)")
 
 
 def _is_finite_number(v) -> bool:
@@ -66,6 +70,8 @@ def parse_record(raw: bytes) -> tuple[dict | None, str]:
         return None, "not UTF-8 text"
     try:
         rec = json.loads(text, parse_constant=_reject_constant)
+    except _NonFinite as exc:
+        return None, str(exc)
     except ValueError as exc:
         return None, f"not JSON ({exc})"
     if not isinstance(rec, dict) or rec.get("schema") != SCHEMA:
@@ -222,7 +228,7 @@ class ParameterHistory:
         created = not self.path.exists()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)   # read: see _reopen
         except OSError as exc:
             raise UserError(f"{self.path}: cannot open parameter history for writing ({exc.strerror})") from None
         try:
@@ -256,24 +262,33 @@ class ParameterHistory:
         data = self._read_bytes() or b""
         recs, bad, tail = self._scan(data)
         self._last_revision = max([self._last_revision] + [int(r["revision"]) for r in recs])
+        kept_aside = True
         if bad:
-            self._set_aside(bad)
-            said.append(self._damage_summary(bad, "skipped"))
-        if tail == "torn":                    # cut it (its copy is set aside): the next record starts its own line
+            try:
+                self._set_aside(bad)
+                said.append(self._damage_summary(bad, "skipped"))
+            except OSError as exc:
+                kept_aside = False
+                said.append(f"parameter history {self.path}: {len(bad)} damaged line(s) skipped, but they cannot be "
+                            f"copied to {damaged_path(self.path)} ({exc.strerror}): they stay in the history")
+        if tail == "torn" and kept_aside:     # cut it (its copy is set aside): the next record starts its own line
             os.ftruncate(self._fd, bad[-1][1])
             os.fsync(self._fd)
-        elif tail == "unterminated":
+        elif tail:                            # end the line: a record, or a tear we could not copy
             self._write_line(b"\n")
         removed, n_bytes = [], 0
         pat = re.compile(re.escape(self.path.name) + r"\.[A-Za-z0-9_]{8}\.tmp")
         for p in self.path.parent.iterdir():
             if pat.fullmatch(p.name):
                 try:
-                    n_bytes += p.stat().st_size
+                    size = p.stat().st_size
                     p.unlink()
                     removed.append(p.name)
+                    n_bytes += size
                 except FileNotFoundError:
                     pass
+                except OSError as exc:          # not ours to fail on: say so and write on
+                    said.append(f"parameter history {self.path}: cannot remove the old temp file {p} ({exc.strerror})")
         if removed:
             said.append(f"parameter history {self.path}: removed {len(removed)} temp file(s) of an interrupted "
                         f"earlier write ({n_bytes} bytes)")
@@ -334,6 +349,29 @@ class ParameterHistory:
             return False
         return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
+    def _reopen(self) -> None:
+        """The file was removed (written again from the open descriptor, so no record is lost) or
+        replaced (continue in the new file, revisions still increasing) while we held it."""
+        removed = not self.path.exists()
+        if removed:
+            size = os.fstat(self._fd).st_size
+            data = os.pread(self._fd, size, 0) if size else b""
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                try:
+                    if data:
+                        os.write(fd, data)
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                _fsync_dir(self.path.parent)
+            except FileExistsError:             # someone else created it meanwhile: continue there
+                removed = False
+        self.close()
+        self.warnings.append(f"parameter history {self.path}: " + (
+            "removed by another program while this writer held it; written again with its records" if removed else
+            "replaced by another program while this writer held it; continuing in the file now there"))
+
     def append(self, parameters: dict, data_used: dict | None = None, fit: dict | None = None,
                _before_write=None, line: str | None = None) -> dict:
         """Store one accepted update; returns the record (with its revision). Raises ``UserError``
@@ -349,9 +387,7 @@ class ParameterHistory:
             rev = (self._memory[-1]["revision"] + 1) if self._memory else 1
         else:
             if self.writing and not self._same_file():
-                self.close()
-                self.warnings.append(f"parameter history {self.path}: removed or replaced by another program "
-                                     f"while this writer held it; continuing in the file now there")
+                self._reopen()
             self.warnings.extend(self.open_writer())
             rev = self._last_revision + 1
         rec = _finite_or_null({"schema": SCHEMA, "revision": rev, "time_unix_s": time.time(), "line": line,

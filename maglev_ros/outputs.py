@@ -16,6 +16,7 @@ import io
 import json
 import math
 import os
+import secrets
 import tempfile
 from contextlib import nullcontext
 from pathlib import Path
@@ -145,14 +146,17 @@ def fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
-def _new_file_mode(target: Path) -> int:
-    """The mode a plain ``open(target, "w")`` would leave: the existing file's, else 0o666 & ~umask."""
-    try:
-        return target.stat().st_mode & 0o7777
-    except OSError:
-        mask = os.umask(0)
-        os.umask(mask)
-        return 0o666 & ~mask
+def _create_temp(target: Path) -> tuple[int, Path]:
+    """A new hidden file beside ``target``, created with mode 0o666 so the umask applies as for a
+    plain ``open(target, "w")`` (mkstemp's 0o600 would hide the output from other users)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0)
+    for _ in range(100):
+        tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}{_TMP_SUFFIX}")
+        try:
+            return os.open(tmp, flags, 0o666), tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary file name", str(target))
 
 
 class Batch:
@@ -208,16 +212,16 @@ class Batch:
         if target.is_dir():
             raise UserError(f"{label}: is a directory; expected a file name")
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=_TMP_SUFFIX, dir=target.parent)
+            fd, tmp = _create_temp(target)
         except OSError as exc:
             raise UserError(f"{label}: cannot write ({exc.strerror or exc})") from None
-        tmp = Path(tmp)
         try:
             with os.fdopen(fd, "wb") as fh:
                 fh.write(data)
                 fh.flush()
                 os.fsync(fh.fileno())
-            os.chmod(tmp, _new_file_mode(target))
+            if target.is_file():       # an existing output keeps its mode
+                os.chmod(tmp, target.stat().st_mode & 0o7777)
         except OSError as exc:
             _unlink(tmp)
             raise UserError(f"{label}: cannot write ({exc.strerror or exc})") from None
@@ -265,9 +269,13 @@ class Batch:
                 _unlink(p)
                 if p.parent not in dirs:
                     dirs.append(p.parent)
-        for d in dirs:
-            fsync_dir(d)
         self._made_dirs = []
+        for d in dirs:
+            try:
+                fsync_dir(d)
+            except OSError as exc:
+                raise UserError(f"{d}: cannot sync the directory after writing "
+                                f"{', '.join(p.name for p in self.paths)} ({exc.strerror or exc})") from None
         return self.paths
 
     def discard(self) -> None:

@@ -37,7 +37,7 @@ def run(args) -> int:
     from maglev_ros.twin.simulate import simulate, truth_paths
     # the bag and its sidecars can be written: checked before the simulation, not after
     outputs.check_parent(args.out, "--out")
-    for sidecar in truth_paths(args.out.rstrip("/") or args.out):
+    for sidecar in truth_paths(args.out):
         if sidecar.is_dir():
             raise UserError(f"--out {args.out}: {sidecar} is a directory; expected none or a file")
     with for_cli(args.quiet, "simulate") as progress:

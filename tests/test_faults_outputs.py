@@ -430,3 +430,14 @@ def test_write_json_strict_and_file_mode_like_a_plain_write(tmp_path):
     outputs.write_text(p, "{}")
     assert p.stat().st_mode & 0o777 == 0o640 and p.read_text() == "{}"
     assert sorted(q.name for q in tmp_path.iterdir()) == ["a.json", "plain"]
+
+
+@pytest.mark.parametrize("verb", ["modes", "irregularity"])
+def test_unknown_figure_format_is_one_line_before_the_work(verb, bags, tmp_path, forbid_compute, capsys):
+    bag = bags.amb if verb == "modes" else bags.pass_
+    extra = ["--out", tmp_path / "x.csv"] if verb == "irregularity" else []
+    rc, _, err = run_cli([verb, bag, *extra, "--plot", tmp_path / "diagram.txt"], capsys)
+    assert rc == 1
+    line = one_error_line(err, verb)
+    assert f"--plot {tmp_path / 'diagram.txt'}" in line and "'.txt'" in line and ".png" in line, line
+    assert list(tmp_path.iterdir()) == []

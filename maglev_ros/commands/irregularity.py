@@ -10,12 +10,13 @@ maglev_ros.irregularity.profile) and both lines state what was achieved.
 """
 from __future__ import annotations
 
-import json
+import io
 import math
 from pathlib import Path
 
 import numpy as np
 
+from maglev_ros import outputs
 from maglev_ros.errors import ContractError, UserError
 
 NAME = "irregularity"
@@ -145,13 +146,21 @@ def header_lines(res, rms, bag) -> list[str]:
     return lines
 
 
-def write_csv(path: str, res, rms, bag) -> None:
-    with open(path, "w", encoding="utf-8") as fh:
-        for line in header_lines(res, rms, bag):
-            fh.write(line.replace("\n", " ") + "\n")
-        fh.write("position_m,irregularity_m\n")
-        for x, y in zip(res.position_m, res.irregularity_m):
-            fh.write(f"{x:.4f},{'' if not math.isfinite(y) else f'{y:.6e}'}\n")
+def csv_text(res, rms, bag) -> str:
+    """The CSV: ``#`` header lines, then ``position_m,irregularity_m`` (empty where invalid)."""
+    fh = io.StringIO()
+    for line in header_lines(res, rms, bag):
+        fh.write(line.replace("\n", " ") + "\n")
+    fh.write("position_m,irregularity_m\n")
+    for x, y in zip(res.position_m, res.irregularity_m):
+        fh.write(f"{x:.4f},{'' if not math.isfinite(y) else f'{y:.6e}'}\n")
+    return fh.getvalue()
+
+
+def write_csv(path: str, res, rms, bag, batch=None) -> None:
+    """Write the CSV atomically, or stage it in ``batch`` (:class:`maglev_ros.outputs.Batch`)."""
+    with outputs.batch_or_new(batch) as b:
+        b.write_text(path, csv_text(res, rms, bag), option="--out")
 
 
 def summary_dict(res, spec, comp, rms, notes, bag) -> dict:
@@ -161,7 +170,8 @@ def summary_dict(res, spec, comp, rms, notes, bag) -> dict:
     return d
 
 
-def write_plot(path: str, res, spec, comp) -> None:
+def write_plot(path: str, res, spec, comp, batch=None) -> None:
+    """Write the PNG atomically, or stage it in ``batch`` (:class:`maglev_ros.outputs.Batch`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -188,20 +198,30 @@ def write_plot(path: str, res, spec, comp) -> None:
     a2.set_ylabel("PSD [m^2/(cycle/m)]")
     a2.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with outputs.batch_or_new(batch) as b:
+            b.write_figure(path, fig, "--plot", dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def run(args) -> int:
+    # the outputs can be written: checked before the analysis, not after
+    outputs.check_file(args.out, "--out")
+    if args.json_out is not None:
+        outputs.check_file(args.json_out, "--json")
+    if args.plot is not None:
+        outputs.check_figure(args.plot, "--plot")
     inputs = read_inputs(args.bag)
     res, spec, comp, rms, notes = analyse(inputs, args)
-    write_csv(args.out, res, rms, args.bag)
-    if args.json_out:
-        with open(args.json_out, "w", encoding="utf-8") as fh:
-            json.dump(summary_dict(res, spec, comp, rms, notes, args.bag), fh, indent=1,
-                      allow_nan=False)
-    if args.plot:
-        write_plot(args.plot, res, spec, comp)
+    # CSV, JSON and plot replace the earlier set together, or none of them does
+    with outputs.Batch() as batch:
+        write_csv(args.out, res, rms, args.bag, batch)
+        if args.json_out:
+            batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag),
+                             indent=1, option="--json")
+        if args.plot:
+            write_plot(args.plot, res, spec, comp, batch)
     v = res.valid
     rms_all = float(np.sqrt(np.mean(res.irregularity_m[v] ** 2))) if v.any() else float("nan")
     print(f"irregularity: valid band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m at "

@@ -15,13 +15,13 @@ stabilization diagram over the spectrum.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from maglev_ros import outputs
 from maglev_ros.errors import UserError
 
 if TYPE_CHECKING:  # the science stack is imported when the verb runs, not at CLI start
@@ -147,6 +147,11 @@ def run(args) -> int:
     bag = Path(args.bag)
     if not bag.exists():
         raise UserError(f"{bag}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
+    # the outputs can be written: checked before the identification, not after
+    if args.json is not None:
+        outputs.check_file(args.json, "--json")
+    if args.plot is not None:
+        outputs.check_figure(args.plot, "--plot")
     out = identify_modes(bag, args.fmin_hz, args.fmax_hz, args.block_rows, args.max_order,
                          args.decimate_to_hz, args.window,
                          {"auto": None, "yes": True, "no": False}[args.scale_channels])
@@ -166,12 +171,14 @@ def run(args) -> int:
               f"{100 * sz:6.3f} {m.mpc:6.3f}")
     if not res.modes:
         print("no stable modes found")
-    if args.json:
-        doc = res.to_dict()
-        doc["source"] = info
-        Path(args.json).write_text(json.dumps(doc, indent=1))
-    if args.plot:
-        from maglev_ros.modal.plot import save_stabilization_diagram
-        save_stabilization_diagram(res, args.plot, title=f"{bag.name}: {info['run_kind']}",
-                                   freq_range_hz=(plan.fmin_hz, plan.fmax_hz))
+    with outputs.Batch() as batch:          # the JSON and the plot replace the earlier pair together
+        if args.json:
+            doc = res.to_dict()
+            doc["source"] = info
+            batch.write_json(args.json, doc, indent=1, option="--json")
+        if args.plot:
+            from maglev_ros.modal.plot import save_stabilization_diagram
+            save_stabilization_diagram(res, args.plot, title=f"{bag.name}: {info['run_kind']}",
+                                       freq_range_hz=(plan.fmin_hz, plan.fmax_hz), batch=batch,
+                                       option="--plot")
     return 0

@@ -36,7 +36,7 @@ from maglev_ros.errors import ContractError, UserError
 
 __all__ = ["Bound", "BOUNDS", "FLAT_PP", "HealthReport", "ExcludedChannel", "TopicScan",
            "quantity_of", "stamp_rate_hz", "rate_issue", "time_offset_issues", "sensor_map_issues",
-           "exclusion", "check_topics", "channel_data_to_si", "block_to_si"]
+           "exclusion", "check_topics", "channel_data_to_si", "block_to_si", "report_lines"]
 
 _QUANTITY = {TOPIC_GUIDEWAY_ACCEL: "acceleration", TOPIC_VEHICLE_ACCEL: "acceleration",
              TOPIC_BODY_ACCEL: "acceleration", TOPIC_GUIDEWAY_DISP: "displacement",
@@ -427,13 +427,16 @@ class HealthReport:
 
     def lines(self) -> list[str]:
         """One stderr line per finding."""
-        out = []
-        for w in self.warnings:
-            where = w.topic or ""
-            if w.channel:
-                where += f" [{w.channel}]"
-            out.append(f"warning: {self.source}: {where}: {w.message}")
-        return out
+        return report_lines(self.to_dict())
+
+
+def report_lines(report: Mapping) -> list[str]:
+    """The stderr lines of a :meth:`HealthReport.to_dict` document (what a verb prints)."""
+    out = []
+    for w in report.get("warnings", ()):
+        where = (w.get("topic") or "") + (f" [{w['channel']}]" if w.get("channel") else "")
+        out.append(f"warning: {report.get('bag')}: {where}: {w['message']}")
+    return out
 
 
 def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],

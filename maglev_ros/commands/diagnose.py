@@ -7,6 +7,7 @@ catalogue of missing physics (held out on the other passes) and writes DIR/repor
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from maglev_ros.errors import UserError
@@ -56,7 +57,12 @@ def _diagnose(args, progress):
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {out}: cannot create directory ({exc.strerror})") from None
+    recs = [*passes, *([ambient] if ambient is not None else [])]
+    for r in recs:
+        for line in r.health.lines():
+            print(f"maglev-ros diagnose: {line}", file=sys.stderr)
     d = diagnose(passes, ambient, progress=progress)
+    d.report["health"] = [r.health.to_dict() for r in recs]      # what the sensor-health check did
     (out / "report.json").write_text(json.dumps(d.to_dict(), indent=1))
     if not args.no_html:
         from maglev_ros.discrepancy.report_html import render

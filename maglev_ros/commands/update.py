@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 from maglev_ros.errors import UserError
@@ -53,6 +54,7 @@ def run(args) -> int:
     from maglev_ros.updating.magnet_layer import MagnetLayer
     from maglev_ros.progress import for_cli
     from maglev_ros.updating.pipeline import update_from_bags
+    from maglev_ros.health import report_lines
 
     for b in [args.ambient, *args.passes]:
         if not Path(b).exists():
@@ -79,6 +81,9 @@ def run(args) -> int:
                               guideway_layer=GuidewayLayer(seed=args.seed, **sw),
                               magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
                                                        seed=args.seed, **sw), progress=progress)
+        for h in up.provenance["health"]:
+            for line in report_lines(h):
+                print(f"maglev-ros update: {line}", file=sys.stderr)
         _write_atomic(out, json.dumps(up.document, indent=1))
         if args.plot:
             from maglev_ros.updating.plot import save_update_plots

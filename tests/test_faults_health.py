@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,13 +26,15 @@ from maglev_ros.sensor_block import Block
 from modal_data import guideway_model, simulate_ambient
 
 G = 9.80665
+ROOT = Path(__file__).resolve().parents[1]
 
 
 # ------------------------------------------------------------------------------ recordings
 @pytest.fixture(scope="module")
 def magnet_pass():
-    """{topic: (channels, units, rate, data)} of a 3-magnet pass in SI and its metadata."""
-    rec = make_recording(40, 31, "constant", length_m=200.0, fs_hz=500.0)
+    """{topic: (channels, units, rate, data)} of a 4-magnet pass in SI and its metadata."""
+    rec = make_recording(40, 31, "constant", length_m=200.0, fs_hz=500.0,
+                         magnet_offsets_m=(0.0, -1.548, -3.096, -4.644))
     topics = {VEHICLE_ACCEL: (rec.accel.channels, rec.accel.units, 500.0, rec.accel.data),
               VEHICLE_GAP: (rec.gap.channels, rec.gap.units, 500.0, rec.gap.data),
               VEHICLE_POSITION: (rec.position.channels, rec.position.units, 100.0, rec.position.data)}
@@ -124,7 +127,7 @@ def test_units_in_g_um_and_kmh_are_converted_and_give_the_si_result(magnet_pass,
     assert "unit 'g' converted to 'm/s^2'" in err and "unit 'um' converted to 'm'" in err
     assert "unit 'km/h' converted to 'm/s'" in err
     conv = {(c["channel"], c["unit"]) for c in doc["health"]["converted_units"]}
-    assert conv == {("M1A", "g"), ("M2A", "g"), ("M3A", "g"), ("M1G", "um"), ("M2G", "um"), ("M3G", "um"),
+    assert conv == {*((f"M{k}A", "g") for k in range(1, 5)), *((f"M{k}G", "um") for k in range(1, 5)),
                     ("speed_mps", "km/h")}
     np.testing.assert_array_equal(got[:, 0], ref[:, 0])
     m = np.isfinite(ref[:, 1])
@@ -316,11 +319,53 @@ def test_sensor_map_missing_is_one_line_error_not_assignment_by_order(magnet_pas
 
 
 def test_read_checked_reports_nothing_on_the_sample_bags():
-    from pathlib import Path
-    root = Path(__file__).resolve().parents[1] / "bags"
     for name in ("paper_ambient", "paper_pass"):
-        with BagReader(root / name) as bag:
+        with BagReader(ROOT / "bags" / name) as bag:
             read, health = bag.read_checked(bag.sensor_topics, sensor_map=True)
             assert bag.check() == []
         assert health.warnings == () and health.excluded == ()
         assert all(cd.n_samples > 0 for cd in read.values())
+
+
+# ------------------------------------------------------------- update / diagnose loaders
+def test_update_and_diagnose_loaders_read_g_as_the_si_bag(magnet_pass, tmp_path):
+    """kp from accelerations in g read as m/s^2 came out 3575 instead of 9425: the loaders of
+    update (read_pass) and diagnose (load_recording) now see the SI values."""
+    from maglev_ros.discrepancy.recording import load_recording
+    from maglev_ros.updating.pipeline import read_pass
+    topics, md = magnet_pass
+    si = write_contract_bag(tmp_path / "si", md, topics)
+    g = write_contract_bag(tmp_path / "g", md, _with(topics, VEHICLE_ACCEL, units="g", scale=1 / G))
+    from maglev_ros.twin.design import twin_config_from_metadata
+    with BagReader(ROOT / "bags" / "paper_pass") as r:      # any twin: the bags have no displacement
+        cfg = twin_config_from_metadata(r.metadata.raw)
+    a, b = read_pass(si, cfg), read_pass(g, cfg)
+    assert b.accel.units == ("m/s^2",) * 4
+    np.testing.assert_allclose(b.accel.data, a.accel.data, rtol=2e-7, atol=1e-9)
+    assert [c["unit"] for c in b.info["health"]["converted_units"]] == ["g"] * 4
+    ra, rb = load_recording(si), load_recording(g)
+    np.testing.assert_allclose(rb.channels["M2A"].values, ra.channels["M2A"].values, rtol=2e-7, atol=1e-9)
+
+
+def test_half_stated_rate_stops_the_diagnosis_loader(magnet_pass, tmp_path):
+    """A rate stated at half the stamps' made a rail 15x too rough and 'missing physics: none'."""
+    from maglev_ros.discrepancy.recording import load_recording
+    topics, md = magnet_pass
+    bag = _write_shifted(tmp_path / "half", md, topics, stated_hz={VEHICLE_ACCEL: 250.0})
+    with pytest.raises(UserError, match=r"vehicle/accel: header stamps advance at 500 Hz but "
+                                        r"sample_rate_hz says 250 Hz") as ei:
+        load_recording(bag)
+    assert "\n" not in str(ei.value)
+
+
+def test_update_ambient_loader_leaves_the_flat_accelerometer_out(ambient, tmp_path):
+    from maglev_ros.updating.pipeline import identify_ambient
+    topics, md, model = ambient
+    bag = write_contract_bag(tmp_path / "flat", md, _with(topics, GUIDEWAY_ACCEL, channel="G3LV",
+                                                         data=lambda x: np.zeros_like(x)))
+    _, res, info = identify_ambient(bag, fmax_hz=150.0)
+    assert "G3LV" not in info["channels"] and len(info["channels"]) == 14
+    assert [e["channel"] for e in info["health"]["excluded_channels"]] == ["G3LV"]
+    f = np.array([m.frequency_hz for m in res.modes])
+    for f0 in model.frequency_hz[model.frequency_hz < 150.0]:
+        assert np.min(np.abs(f - f0)) / f0 < 0.01

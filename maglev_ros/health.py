@@ -440,12 +440,15 @@ def report_lines(report: Mapping) -> list[str]:
 
 
 def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
-                 sensor_map: bool = False) -> tuple[dict, HealthReport]:
+                 sensor_map: bool = False,
+                 other_intervals: Mapping[str, tuple[float, float]] | None = None) -> tuple[dict, HealthReport]:
     """The health check of the topics a verb reads.
 
     ``topics``: {topic: (ChannelData as read, per block: stamp [ns], sample count, stated rate)}. Returns
     ({topic: ChannelData in SI without excluded channels}, HealthReport). Raises one UserError
-    line (the first error; how many more) where the result would be wrong.
+    line (the first error; how many more) where the result would be wrong. Topics read together
+    that do not overlap in time are an error; ``other_intervals`` ({topic: (start_s, end_s)} of
+    topics the verb does not read) only give warnings, as the verb does not combine them.
     """
     where = f"{source}: "
     errors: list[str] = []
@@ -497,7 +500,12 @@ def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
                                      units=tuple(cd.units[j] for j in keep), data=cd.data[:, keep])
         out[topic] = cd
         intervals[topic] = (float(cd.time_s[0]), float(cd.time_s[-1]) + 1.0 / cd.sample_rate_hz)
-    errors += [f"{i.topic}: {i.message}" for i in time_offset_issues(intervals)]
+    offset = time_offset_issues(intervals)
+    errors += [f"{i.topic}: {i.message}" for i in offset]
+    if other_intervals and intervals:
+        # the verb's own topics are the reference: name the unread ones that lie elsewhere
+        warnings += [i for i in time_offset_issues({**other_intervals, **intervals}, "warning")
+                     if i.topic in other_intervals]
     if errors:
         more = f" (and {len(errors) - 1} more problem(s); `maglev-ros info` lists the recording's)" \
             if len(errors) > 1 else ""

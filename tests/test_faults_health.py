@@ -369,3 +369,32 @@ def test_update_ambient_loader_leaves_the_flat_accelerometer_out(ambient, tmp_pa
     f = np.array([m.frequency_hz for m in res.modes])
     for f0 in model.frequency_hz[model.frequency_hz < 150.0]:
         assert np.min(np.abs(f - f0)) / f0 < 0.01
+
+
+def test_update_and_diagnose_commands_refuse_damaged_bags_in_one_line(magnet_pass, ambient, tmp_path, capsys):
+    topics, md = magnet_pass
+    late = _write_shifted(tmp_path / "late", md, topics, shift_s={VEHICLE_GAP: 3600.0})
+    gt, gmd, _ = ambient
+    huge = write_contract_bag(tmp_path / "huge", gmd, _with(gt, GUIDEWAY_ACCEL, scale=1e30))
+    assert main(["diagnose", "--pass", str(late), "--out", str(tmp_path / "d"), "--quiet"]) == 1
+    _one_line_error(capsys.readouterr().err, VEHICLE_GAP, "do not overlap", "offset +3600")
+    assert not (tmp_path / "d" / "report.json").exists()
+    assert main(["update", "--ambient", str(huge), "--pass", str(late), "--out", str(tmp_path / "p.json"),
+                 "--quiet"]) == 1
+    _one_line_error(capsys.readouterr().err, GUIDEWAY_ACCEL, "implausible")
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_shifted_topic_a_verb_does_not_read_is_a_warning(ambient, tmp_path, capsys):
+    """modes of an ambient recording reads the guideway alone: a position topic an hour off is
+    said, not fatal."""
+    gt, gmd, _ = ambient
+    topics = dict(gt)
+    n = 40 * 100
+    topics[VEHICLE_POSITION] = (("position_m", "speed_mps"), ("m", "m/s"), 100.0, np.zeros((n, 2)))
+    bag = _write_shifted(tmp_path / "amb", gmd, topics, shift_s={VEHICLE_POSITION: 3600.0})
+    with BagReader(bag) as r:
+        _, health = r.read_checked(GUIDEWAY_ACCEL)
+    (w,) = health.warnings
+    assert (w.kind, w.topic, w.severity) == ("time_offset", VEHICLE_POSITION, "warning")
+    assert "offset +3600" in w.message

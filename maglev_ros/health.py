@@ -187,7 +187,7 @@ class TopicScan:
 
     def add(self, data: np.ndarray) -> None:
         x = np.asarray(data, dtype=np.float64)
-        if x.ndim != 2 or x.shape[0] == 0 or not np.isfinite(x).all():
+        if x.ndim != 2 or x.size == 0 or not np.isfinite(x).all():
             return                    # NaN/inf blocks are the contract check's, not ours
         self.n += x.shape[0]
         out = (x > self._hi) | (x < self._lo) | (self._open & (x <= self._lo))

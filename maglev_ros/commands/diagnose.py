@@ -6,6 +6,7 @@ catalogue of missing physics (held out on the other passes) and writes DIR/repor
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from maglev_ros import outputs
@@ -53,7 +54,12 @@ def _diagnose(args, progress):
         if ambient.kind != "ambient":
             raise UserError(f"{args.ambient}: run.kind: expected 'ambient' for --ambient, got {ambient.kind!r}")
     out = Path(args.out)
+    recs = [*passes, *([ambient] if ambient is not None else [])]
+    for r in recs:
+        for line in r.health.lines():
+            print(f"maglev-ros diagnose: {line}", file=sys.stderr)
     d = diagnose(passes, ambient, progress=progress)
+    d.report["health"] = [r.health.to_dict() for r in recs]      # what the sensor-health check did
     # report.json and report.html replace the earlier pair together, or neither does
     with outputs.Batch() as batch:
         batch.make_dir(out, "--out")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +57,11 @@ def _check_units(cd, topic, want, channels):
 
 def read_inputs(path: str):
     """Read the three vehicle topics and the metadata; returns a dict for InertialProfiler.fit."""
+    return read_inputs_checked(path)[0]
+
+
+def read_inputs_checked(path: str):
+    """(read_inputs' dict, the sensor-health report of what was read)."""
     from maglev_ros.bag_reader import BagReader
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
@@ -71,9 +77,10 @@ def read_inputs(path: str):
                                     "vehicle accel, gap and position"
                                     + (f"; run.kind is {kind!r}: no vehicle pass)"
                                        if kind and kind != "pass" else ")"))
+        topics = (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION)
+        read, health = r.read_checked(topics, sensor_map=True)
         # samples placed at the time they describe (optional acquisition delay in the metadata)
-        accel, gap, pos = (r.read_topic(t).delayed_by(md.acquisition_delay_s(t))
-                           for t in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
+        accel, gap, pos = (read[t].delayed_by(md.acquisition_delay_s(t)) for t in topics)
     offsets = md.magnet_offsets_m
     if not offsets:
         raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")
@@ -87,7 +94,7 @@ def read_inputs(path: str):
         if ch not in pos.channels:
             raise ContractError(f"{path}: {TOPIC_VEHICLE_POSITION}: channel {ch} missing")
     return {"accel": accel, "gap": gap, "position": pos, "magnet_offsets_m": offsets,
-            "nominal_gap_m": g0, "channel_pairs": pairs}
+            "nominal_gap_m": g0, "channel_pairs": pairs}, health
 
 
 def analyse(inputs: dict, args):
@@ -212,14 +219,16 @@ def run(args) -> int:
         outputs.check_file(args.json_out, "--json")
     if args.plot is not None:
         outputs.check_figure(args.plot, "--plot")
-    inputs = read_inputs(args.bag)
+    inputs, health = read_inputs_checked(args.bag)
+    for line in health.lines():
+        print(f"maglev-ros irregularity: {line}", file=sys.stderr)
     res, spec, comp, rms, notes = analyse(inputs, args)
     # CSV, JSON and plot replace the earlier set together, or none of them does
     with outputs.Batch() as batch:
         write_csv(args.out, res, rms, args.bag, batch)
         if args.json_out:
-            batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag),
-                             indent=1, option="--json")
+            batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag)
+                             | {"health": health.to_dict()}, indent=1, option="--json")
         if args.plot:
             write_plot(args.plot, res, spec, comp, batch)
     v = res.valid

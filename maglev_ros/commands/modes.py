@@ -15,9 +15,10 @@ stabilization diagram over the spectrum.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -76,6 +77,7 @@ class BagModes:
     result: ModalResult
     info: dict
     plan: BandPlan
+    health: Any = None        # maglev_ros.health.HealthReport of what was read
 
 
 def identify_bag(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=None,
@@ -100,10 +102,12 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         if TOPIC_ACCEL not in r.topics:
             raise UserError(f"{path}: topic {TOPIC_ACCEL} not in bag; expected guideway "
                             f"accelerations (topics: {', '.join(sorted(r.topics)) or 'none'})")
-        cd = r.read_topic(TOPIC_ACCEL)
         md = r.metadata
         kind = md.run_kind if md is not None else "ambient"
-        pos = r.read_topic(TOPIC_POSITION) if TOPIC_POSITION in r.topics else None
+        # a pass places the sensors on their spans (free-decay window): that needs the sensor map
+        read, health = r.read_checked([TOPIC_ACCEL] + ([TOPIC_POSITION] if TOPIC_POSITION in r.topics else []),
+                                      sensor_map=kind == "pass")
+        cd, pos = read[TOPIC_ACCEL], read.get(TOPIC_POSITION)
     fs = float(cd.sample_rate_hz)
     data = np.asarray(cd.data, dtype=float)
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
@@ -140,7 +144,7 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
     res, _ = identify_bands(data, fs, plan, cd.channels)
-    return BagModes(res, info, plan)
+    return BagModes(res, info, plan, health)
 
 
 def run(args) -> int:
@@ -156,6 +160,8 @@ def run(args) -> int:
                          args.decimate_to_hz, args.window,
                          {"auto": None, "yes": True, "no": False}[args.scale_channels])
     res, info, plan = out.result, out.info, out.plan
+    for line in out.health.lines():
+        print(f"maglev-ros modes: {line}", file=sys.stderr)
     print(f"{bag}: {info['run_kind']} recording, {len(info['channels'])} channels at "
           f"{info['fs_hz']:g} Hz, {info['n_samples'] / info['fs_hz']:.4g} s")
     if "free_decay_window" in info:
@@ -175,6 +181,7 @@ def run(args) -> int:
         if args.json:
             doc = res.to_dict()
             doc["source"] = info
+            doc["health"] = out.health.to_dict()
             batch.write_json(args.json, doc, indent=1, option="--json")
         if args.plot:
             from maglev_ros.modal.plot import save_stabilization_diagram

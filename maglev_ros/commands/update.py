@@ -8,6 +8,7 @@ ka) from the passes' magnet accelerations with the updated guideway. Writes the 
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from maglev_ros import outputs
@@ -45,6 +46,7 @@ def run(args) -> int:
     from maglev_ros.updating.magnet_layer import MagnetLayer
     from maglev_ros.progress import for_cli
     from maglev_ros.updating.pipeline import update_from_bags
+    from maglev_ros.health import report_lines
 
     for b in [args.ambient, *args.passes]:
         if not Path(b).exists():
@@ -73,6 +75,9 @@ def run(args) -> int:
                               guideway_layer=GuidewayLayer(seed=args.seed, **sw),
                               magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
                                                        seed=args.seed, **sw), progress=progress)
+        for h in up.provenance["health"]:
+            for line in report_lines(h):
+                print(f"maglev-ros update: {line}", file=sys.stderr)
         doc = up.document
         # parameters, plots and details replace the earlier set together, or none of them does
         with outputs.Batch() as batch:

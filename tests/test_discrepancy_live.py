@@ -125,3 +125,22 @@ def test_the_node_diagnoses_a_replayed_pass_as_the_offline_command_does(tmp_path
     # one report per finding, with the physics named
     named = [m for m in got["/maglev/mismatch"] if m["effect"]]
     assert [m["effect"] for m in named] == [m["effect"] for m in live["missing_physics"]]
+
+
+def test_a_stream_in_g_is_assembled_in_si_as_the_bag_readers_do():
+    import dataclasses
+    from maglev_ros.contract import unit_conversion
+    g = unit_conversion("g")[1]
+    asm = RecordingAssembler()
+    for topic, item in _stream([SAMPLE / "paper_pass"]):
+        if topic == "metadata":
+            asm.set_metadata(item)
+            continue
+        if topic == "/testline/vehicle/accel":
+            item = dataclasses.replace(item, units=("g",) * len(item.channels),
+                                       data=(np.asarray(item.data, np.float64) / g).astype(np.float32))
+        asm.add_block(topic, item)
+    rec, ref = asm.finish(), load_recording(SAMPLE / "paper_pass")
+    for n, c in ref.channels.items():
+        # float32 samples in g: the SI values to float32 rounding
+        np.testing.assert_allclose(rec.channels[n].values, c.values, rtol=1e-6, atol=1e-6 * np.abs(c.values).max())

@@ -14,7 +14,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from maglev_ros.contract import TOPIC_VEHICLE_POSITION
+from maglev_ros.contract import TOPIC_VEHICLE_POSITION, to_si_units
 from maglev_ros.sensor_block import Block
 
 from .diagnose import DiagnoseConfig, Diagnosis, diagnose
@@ -28,9 +28,10 @@ class _TopicBlocks:
     def add(self, block: Block) -> None:
         self.blocks.append(block)
 
-    def arrays(self) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-        """Channels, sample times [s] and samples (float64), blocks in stamp order, an exact repeat
-        of a block dropped (a reliable stream re-sent after a reconnect)."""
+    def arrays(self, topic: str) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+        """Channels, sample times [s] and samples (float64, SI), blocks in stamp order, an exact
+        repeat of a block dropped (a reliable stream re-sent after a reconnect). Units are converted
+        as the bag readers do (the contract's table, in float64); an unknown unit raises ContractError."""
         bs = sorted(self.blocks, key=lambda b: b.stamp_ns)
         keep = [b for i, b in enumerate(bs) if i == 0 or b.stamp_ns != bs[i - 1].stamp_ns]
         chans = keep[0].channels
@@ -38,7 +39,8 @@ class _TopicBlocks:
         # the bag reader's sample times: stamp + j / rate, in float64
         t = np.concatenate([b.stamp_ns * 1e-9 + np.arange(b.n_samples) / b.sample_rate_hz for b in keep])
         x = np.concatenate([np.asarray(b.data, np.float64) for b in keep])
-        return chans, t, x
+        _, factors, conv = to_si_units(topic, chans, keep[0].units, "live stream ")
+        return chans, t, (x * np.asarray(factors) if conv else x)
 
 
 class RecordingAssembler:
@@ -65,13 +67,15 @@ class RecordingAssembler:
             self._topics.setdefault(topic, _TopicBlocks()).add(block)
 
     def finish(self) -> Recording | None:
-        """The recording so far (None without metadata or data); the assembler starts a new one."""
+        """The recording so far (None without metadata or data); the assembler starts a new one.
+        ContractError when it cannot be a recording (a unit outside the contract's table, a channel
+        the metadata does not place)."""
         topics, self._topics = self._topics, {}
         if self.metadata is None or not any(tb.blocks for tb in topics.values()):
             return None
         signals, position = {}, None
         for topic, tb in topics.items():
-            chans, t, x = tb.arrays()
+            chans, t, x = tb.arrays(topic)
             if topic == TOPIC_VEHICLE_POSITION:
                 if "position_m" in chans:
                     pos = x[:, chans.index("position_m")]

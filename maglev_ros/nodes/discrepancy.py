@@ -38,6 +38,7 @@ from std_msgs.msg import String
 from maglev_msgs.msg import MismatchReport, SensorBlock
 from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION
 from maglev_ros.discrepancy.online import OnlineDetector
+from maglev_ros.errors import ContractError
 from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node, stamp_to_msg
 
 TOPIC_MISMATCH = "/maglev/mismatch"
@@ -120,18 +121,25 @@ class DiscrepancyNode(Node):
             self.get_logger().error(f"{TOPIC_METADATA}: not JSON ({exc}); recordings are not diagnosed")
             return
         with self._lock:
-            done = self.assembler.set_metadata(md)
+            done = self._finished(lambda: self.assembler.set_metadata(md))
         if done is not None:
             self._submit(done)
 
     def _check_idle(self) -> None:
         with self._lock:
             idle = self._last_data is not None and time.monotonic() - self._last_data > self.idle_s
-            done = self.assembler.finish() if idle else None
+            done = self._finished(self.assembler.finish) if idle else None
             if idle:
                 self._last_data = None
         if done is not None:
             self._submit(done)
+
+    def _finished(self, step):
+        try:
+            return step()
+        except ContractError as exc:     # a recording that cannot be diagnosed must not end the node
+            self.get_logger().error(f"recording not diagnosed: {exc}")
+            return None
 
     def _submit(self, rec) -> None:
         self._queue.append(rec)

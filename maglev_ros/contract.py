@@ -371,6 +371,10 @@ def parse_metadata(text: str | bytes, source: str) -> Metadata:
     except json.JSONDecodeError as exc:
         raise ContractError(f"{source}: metadata is not valid JSON ({exc.msg} at line {exc.lineno} "
                             f"column {exc.colno})") from None
+    except RecursionError:
+        # the contract's document is a few levels deep; a hostile or broken one must not crash us
+        raise ContractError(f"{source}: metadata is nested too deeply to be the contract's document "
+                            f"(expected a few levels of objects)") from None
     return metadata_from_dict(doc, source)
 
 

@@ -36,7 +36,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import MismatchReport, SensorBlock
-from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION
+from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.discrepancy.online import OnlineDetector
 from maglev_ros.errors import ContractError
 from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node, stamp_to_msg
@@ -116,9 +116,9 @@ class DiscrepancyNode(Node):
 
     def _on_metadata(self, msg) -> None:
         try:
-            md = json.loads(msg.data)
-        except ValueError as exc:
-            self.get_logger().error(f"{TOPIC_METADATA}: not JSON ({exc}); recordings are not diagnosed")
+            md = parse_metadata(msg.data, TOPIC_METADATA).raw
+        except ContractError as exc:
+            self.get_logger().error(f"{exc}; recordings are not diagnosed")
             return
         with self._lock:
             done = self._finished(lambda: self.assembler.set_metadata(md))

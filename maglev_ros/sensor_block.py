@@ -11,6 +11,7 @@ definition equals ours, is checked against rosbags in the tests, and falls back 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import struct
 import sys
@@ -25,7 +26,7 @@ from maglev_ros.errors import ContractError, UserError
 __all__ = ["Block", "MSG_PACKAGE", "MSG_NAMES", "msg_dir", "msg_text", "typestore",
            "msgtype_name", "block_to_msg", "msg_to_block", "string_msg", "make_header",
            "serialize", "deserialize", "SENSORBLOCK_TYPE", "STRING_TYPE", "SensorBlockDecoder",
-           "DecodedBlock"]
+           "DecodedBlock", "BLOCK_FAULT_KINDS", "block_fault"]
 
 MSG_PACKAGE = "maglev_msgs"
 # Order matters for registration only through dependencies (ModalMode before ModalEstimate).
@@ -101,6 +102,32 @@ class Block:
             raise UserError(f"block sample_rate_hz must be > 0, got {sample_rate_hz!r}")
         return cls(int(stamp_ns), frame_id, float(sample_rate_hz), channels, units, arr)
 
+
+
+# ------------------------------------------------------------------------- block validation
+# Kinds named as BagReader.check names the same issues in a bag.
+BLOCK_FAULT_KINDS = ("no_channels", "data_length", "units_mismatch", "bad_rate", "empty")
+
+
+def block_fault(channels, units, sample_rate_hz, n_values: int) -> tuple[str, str] | None:
+    """Why a SensorBlock's fields cannot make a usable :class:`Block`: ``(kind, reason)``, or None.
+
+    ``kind`` is one of :data:`BLOCK_FAULT_KINDS`; ``reason`` is one line naming the field. The
+    check every consumer of a live stream runs before it touches the samples (the nodes).
+    """
+    nch = len(channels)
+    if nch == 0:
+        return "no_channels", "channels is empty"
+    if n_values % nch:
+        return "data_length", f"data has {n_values} values, not a multiple of {nch} channels"
+    if len(units) != nch:
+        return "units_mismatch", f"{nch} channels but {len(units)} units"
+    rate = float(sample_rate_hz)
+    if not (math.isfinite(rate) and rate > 0):
+        return "bad_rate", f"sample_rate_hz must be a finite rate > 0, got {sample_rate_hz!r}"
+    if n_values == 0:
+        return "empty", "data holds no samples"
+    return None
 
 # ------------------------------------------------------------------------------- msg texts
 def _candidate_msg_dirs() -> list[Path]:

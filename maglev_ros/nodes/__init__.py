@@ -21,8 +21,9 @@ HOW_TO_GET_ROS = ("run scripts/install from the maglev_ros source tree (ROS 2 wh
 
 
 def require_ros() -> None:
-    """Raise UserError naming what is missing when rclpy or maglev_msgs cannot be imported."""
-    missing = [m for m in ("rclpy", "maglev_msgs") if importlib.util.find_spec(m) is None]
+    """Raise UserError naming what is missing when rclpy, maglev_msgs or diagnostic_msgs cannot be
+    imported."""
+    missing = [m for m in ("rclpy", "maglev_msgs", "diagnostic_msgs") if importlib.util.find_spec(m) is None]
     if missing:
         raise UserError(f"the ROS 2 nodes need {' and '.join(missing)} (not installed): "
                         + HOW_TO_GET_ROS)

@@ -23,7 +23,8 @@ from rclpy.node import Node
 from maglev_msgs.msg import MismatchReport, SensorBlock
 from maglev_ros.contract import DATA_TOPICS, TOPIC_VEHICLE_POSITION
 from maglev_ros.discrepancy.online import OnlineDetector
-from maglev_ros.nodes._common import QOS_STREAM, block_from_msg, run_node, stamp_to_msg
+from maglev_ros.nodes._common import QOS_STREAM, BlockGate, run_node, stamp_to_msg
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
@@ -44,31 +45,42 @@ class DiscrepancyNode(Node):
             rel_allowance=num("rel_allowance", 0.1))
         measured = list(self.declare_parameter("measured_topics", list(MEASURED_TOPICS)).value or [])
         self.pub = self.create_publisher(MismatchReport, TOPIC_MISMATCH, QOS_STREAM)
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         self.subs = {}
-        self.create_subscription(SensorBlock, "/testline/vehicle/position", self._on_position, QOS_STREAM)
+        self.create_subscription(SensorBlock, TOPIC_VEHICLE_POSITION, self._on_position, QOS_STREAM)
         if self.detector.rel_allowance > 0:
             for topic in measured:
                 if topic:
-                    self.create_subscription(SensorBlock, topic, self._on_measured, QOS_STREAM)
+                    self.create_subscription(SensorBlock, topic, self._on_measured(topic), QOS_STREAM)
         self.create_timer(0.5, self._discover)
         self._discover()
 
     def _discover(self) -> None:
         for name, types in self.get_topic_names_and_types():
             if name.startswith(RESIDUAL_PREFIX) and name not in self.subs and "maglev_msgs/msg/SensorBlock" in types:
-                self.subs[name] = self.create_subscription(SensorBlock, name, self._on_residual, QOS_STREAM)
+                self.subs[name] = self.create_subscription(SensorBlock, name, self._on_residual(name), QOS_STREAM)
 
     def _on_position(self, msg) -> None:
-        b = block_from_msg(msg)
-        if "position_m" in b.channels:
+        b = self.gate.block(msg, TOPIC_VEHICLE_POSITION)
+        if b is not None and "position_m" in b.channels:
             self.detector.add_position(b.times_s(), b.data[:, b.channels.index("position_m")])
 
-    def _on_measured(self, msg) -> None:
-        self.detector.add_measured_block(block_from_msg(msg))
+    def _on_measured(self, topic: str):
+        def cb(msg) -> None:
+            b = self.gate.block(msg, topic)
+            if b is not None:
+                self.detector.add_measured_block(b)
+        return cb
 
-    def _on_residual(self, msg) -> None:
-        for ev in self.detector.add_block(block_from_msg(msg)):
-            self._publish(ev)
+    def _on_residual(self, topic: str):
+        def cb(msg) -> None:
+            b = self.gate.block(msg, topic)
+            if b is None:
+                return
+            for ev in self.detector.add_block(b):
+                self._publish(ev)
+        return cb
 
     def _publish(self, ev) -> None:
         out = MismatchReport()

@@ -113,7 +113,7 @@ def run_node(node_factory, args=None) -> int:
 
 
 class BlockGate:
-    """The edge check of every SensorBlock a node takes (:func:`maglev_ros.sensor_block.block_fault`).
+    """The edge check of every SensorBlock a node takes (:class:`maglev_ros.sensor_block.StreamCheck`).
 
     ``block(msg, topic)`` returns the core Block, or None for a malformed one, which is dropped,
     counted per kind and topic and logged once per kind; the counts go to ``/diagnostics``
@@ -121,19 +121,24 @@ class BlockGate:
     """
 
     def __init__(self, node, diagnostics) -> None:
+        from maglev_ros.sensor_block import StreamCheck
         self.node = node
+        self.stream = StreamCheck()
         self.accepted = 0
         self.dropped: Counter = Counter()            # kind -> blocks
         self.dropped_on: Counter = Counter()         # topic -> blocks
         diagnostics.add_check(self.check)
+
+    def new_stream(self) -> None:
+        """Call on new metadata: the next block of each topic sets its layout again."""
+        self.stream.new_stream()
 
     @property
     def seen(self) -> int:
         return self.accepted + sum(self.dropped.values())
 
     def block(self, msg, topic: str):
-        from maglev_ros.sensor_block import block_fault
-        fault = block_fault(msg.channels, msg.units, msg.sample_rate_hz, len(msg.data))
+        fault = self.stream.fault(topic, msg.channels, msg.units, msg.sample_rate_hz, len(msg.data))
         if fault is None:
             self.accepted += 1
             return block_from_msg(msg)

@@ -53,6 +53,7 @@ class IrregularityNode(Node):
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
+        self.gate.new_stream()
         try:
             md = parse_metadata(msg.data, TOPIC_METADATA)
             offsets = md.magnet_offsets_m

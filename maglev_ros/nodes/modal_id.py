@@ -45,6 +45,7 @@ class ModalIdNode(Node):
                                  qos_for(TOPIC_GUIDEWAY_ACCEL))
 
     def _on_metadata(self, msg) -> None:
+        self.gate.new_stream()
         if self.wanted:
             return
         try:

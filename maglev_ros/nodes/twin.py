@@ -114,6 +114,7 @@ class TwinNode(Node):
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
         from maglev_ros.twin.online import OnlineTwin
+        self.gate.new_stream()
         try:
             md = json.loads(msg.data)
             self.core = OnlineTwin(md, psd=self.opts["psd"], band_m=self.opts["band_m"], seed=self.opts["seed"],

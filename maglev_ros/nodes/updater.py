@@ -90,6 +90,7 @@ class UpdaterNode(Node):
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
         from maglev_ros.updating.history import line_key
+        self.gate.new_stream()
         try:
             with self.lock:
                 self.core.set_metadata(json.loads(msg.data))

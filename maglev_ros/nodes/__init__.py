@@ -3,6 +3,10 @@
 The console scripts (``maglev_<node>`` from pip, ``<node>`` in colcon's ``lib/maglev_ros``) enter
 through the ``*_main`` functions below, which first check that ROS 2 and the suite's messages are
 importable and otherwise say in one line how to get them.
+
+Every SensorBlock a node takes passes ``_common.BlockGate`` (a malformed block is dropped, counted,
+logged once per kind); each such node publishes its health on /diagnostics (``_diagnostics``).
+Message classes come only from ``_common.ALLOWED_TYPES``.
 """
 from __future__ import annotations
 

@@ -127,6 +127,7 @@ class DiscrepancyNode(Node):
         except ContractError as exc:
             self.get_logger().error(f"{exc}; recordings are not diagnosed")
             return
+        self.gate.new_stream()       # a new recording may have its own layout (rate, channels)
         with self._lock:
             done = self._finished(lambda: self.assembler.set_metadata(md))
         if done is not None:

@@ -23,7 +23,6 @@ Parameters: ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush
 from __future__ import annotations
 
 import array
-import json
 import sys
 import time
 
@@ -31,6 +30,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import IrregularityProfile, SensorBlock, TwinParameters
+from maglev_ros.contract import parse_metadata
 from maglev_ros.nodes._common import QOS_STREAM, BlockGate, qos_for, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
@@ -116,7 +116,7 @@ class TwinNode(Node):
         from maglev_ros.twin.online import OnlineTwin
         self.gate.new_stream()
         try:
-            md = json.loads(msg.data)
+            md = parse_metadata(msg.data, "/testline/metadata").raw
             self.core = OnlineTwin(md, psd=self.opts["psd"], band_m=self.opts["band_m"], seed=self.opts["seed"],
                                    method=self.opts["method"], fs_hz=self.opts["fs_hz"],
                                    dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"],

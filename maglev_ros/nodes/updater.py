@@ -24,7 +24,6 @@ and updating the guideway meanwhile); only accepting and storing the result take
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import threading
@@ -33,6 +32,7 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
+from maglev_ros.contract import parse_metadata
 from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
@@ -101,7 +101,7 @@ class UpdaterNode(Node):
         self.gate.new_stream()
         try:
             with self.lock:
-                self.core.set_metadata(json.loads(msg.data))
+                self.core.set_metadata(parse_metadata(msg.data, "/testline/metadata").raw)
                 key = line_key(self.core.md.raw)
                 if key == self.line:
                     return

@@ -100,15 +100,16 @@ class Backpressure:
     ``first_wait_s`` to ``max_wait_s``) and each message taken (``accepted`` with the time from the
     first offer); an offer that took ``held_after_s`` or more waited for room (queuing into a
     writer with room takes microseconds). A stall (refusals with nothing taken) longer than
-    ``stall_timeout_s`` raises :class:`Stalled`; ``drain_budget_s`` bounds the wait for the final
-    acknowledgements.
+    ``stall_timeout_s`` raises :class:`Stalled` (a killed subscriber is dropped by DDS before: Fast
+    DDS after its 20 s lease); ``drain_budget_s`` bounds the wait for the final acknowledgements.
     """
 
-    stall_timeout_s: float = 60.0
+    stall_timeout_s: float = 300.0
     warn_after_s: float = 5.0
     first_wait_s: float = 0.005
     max_wait_s: float = 0.25
     held_after_s: float = 1e-3
+    history_limit: int = 5000       # Fast DDS's keep-all resource limit (rmw_fastrtps keeps it)
     now: callable = field(default=time.monotonic, repr=False)
     held_n: dict = field(default_factory=dict)         # topic -> messages that waited for room
     held_s: dict = field(default_factory=dict)         # topic -> wall seconds they waited
@@ -167,13 +168,15 @@ class Backpressure:
     def drain_budget_s(self, topic: str) -> float:
         """Longest wait for the final acknowledgements on ``topic`` before calling it stalled.
 
-        A writer that was ever full holds up to as many unacknowledged messages as it took before
-        it was first full; the subscriber was seen to take the ones after at a rate that bounds
-        how long those need.
+        A writer that held the replay back still holds a backlog its slowest subscriber has not
+        acknowledged: up to ``history_limit`` messages, which at the pace the subscriber showed
+        since the writer was first full take ``history_limit / pace``; as the limit is the RMW's
+        and may be larger, at least as long as that paced stretch took (a backlog no larger than
+        what was taken meanwhile). The stall allowance comes on top.
         """
         if topic not in self._full:
             return self.stall_timeout_s
         t0_s, n0 = self._full[topic]
-        taken = self.accepted_n.get(topic, 0) - n0
-        rate_hz = taken / max(self.now() - t0_s, 1e-9)
-        return self.stall_timeout_s + (n0 / rate_hz if rate_hz > 0 else 0.0)
+        paced_s = self.now() - t0_s
+        taken = max(self.accepted_n.get(topic, 0) - n0, 1)
+        return self.stall_timeout_s + max(paced_s, paced_s * self.history_limit / taken)

@@ -79,18 +79,22 @@ def test_a_message_taken_ends_the_stall_so_slow_progress_never_times_out():
     assert bp.stalled_s() == 0.0 and bp.refused_n == {TOPIC: 5}
 
 
-def test_drain_budget_covers_a_full_history_at_the_rate_the_subscriber_showed():
+def test_drain_budget_covers_a_full_history_at_the_pace_the_subscriber_showed():
     now = FakeTime(0.0)
-    bp = Backpressure(stall_timeout_s=30.0, now=now)
+    bp = Backpressure(stall_timeout_s=30.0, history_limit=1000, now=now)
     for _ in range(200):
         bp.accepted(TOPIC, offer_s=1e-5)
     assert bp.drain_budget_s(TOPIC) == 30.0          # never held back: the stall allowance only
     now.t = 1.0
-    bp.accepted(TOPIC, offer_s=1.0)                  # full after 200: up to 200 unacknowledged
+    bp.accepted(TOPIC, offer_s=1.0)                  # first held at t = 0
     now.t = 40.0
-    for _ in range(79):                              # 80 taken in 40 s since: 2 per second
+    for _ in range(79):                              # 80 taken in 40 s: 2 per second
         bp.accepted(TOPIC, offer_s=0.5)
-    assert bp.drain_budget_s(TOPIC) == pytest.approx(30.0 + 200 / 2.0)
+    # a full history of 1000 at 2 per second needs 500 s
+    assert bp.drain_budget_s(TOPIC) == pytest.approx(30.0 + 1000 / 2.0)
+    for _ in range(1920):                            # 2000 taken by t = 40 s: 50 per second,
+        bp.accepted(TOPIC, offer_s=0.01)             # a history in 20 s, but paced for 40 s
+    assert bp.drain_budget_s(TOPIC) == pytest.approx(30.0 + 40.0)
 
 
 def test_pace_is_credited_to_subscribers_only_beyond_a_busy_machines_delays():
@@ -173,7 +177,7 @@ def _replay(procs, env, bag, n_subscribers: int, stall_timeout_s: float):
 def test_fast_replay_waits_for_a_slow_reliable_subscriber_and_ignores_a_stuck_best_effort_one(
         long_bag, env, procs, tmp_path):
     slow = tmp_path / "slow.json"
-    _subscriber(procs, env, slow, "reliable", 0.001)
+    _subscriber(procs, env, slow, "reliable", 0.0005)
     # best effort and stuck on its first message for good: it must not hold the replay back
     _subscriber(procs, env, tmp_path / "stuck.json", "best_effort", 3600.0)
     # a stall of 20 s ends the replay with an error: more than a slow subscriber's legitimate
@@ -182,13 +186,14 @@ def test_fast_replay_waits_for_a_slow_reliable_subscriber_and_ignores_a_stuck_be
     out, err = rep.communicate(timeout=240)
     assert rep.returncode == 0, err
     assert "Traceback" not in err
-    # the publish path waited for room in the writer's history. The subscriber needs at least
-    # 18000 x 1 ms = 18 s, the DDS histories hold a few thousand messages, so the replay had to
-    # wait many seconds; scheduling delays inside microsecond-long publish calls add up to far less
+    # the publish path waited for room in the writer's history: the subscriber sleeps 18000 x
+    # 0.5 ms = 9 s, the writer's and reader's histories hold 5000 each, so the replay must have
+    # waited 4 s at least; without a reliable subscriber, scheduling delays inside the publish
+    # calls add up to a tenth of that
     summary = next(line for line in err.splitlines() if "published 18000 messages" in line)
     held = re.search(rf"a reliable subscriber of {TOPIC} set the pace: \d+ message\(s\) "
                      r"waited ([\d.]+) s for room", summary)
-    assert held is not None and float(held.group(1)) > 5.0, summary
+    assert held is not None and float(held.group(1)) > 2.0, summary
     procs.procs[0].wait(timeout=120)
     got = json.loads(slow.read_text())
     assert got["stamps_ns"] == _expected_stamps_ns()   # every block once, in order
@@ -212,6 +217,22 @@ def test_killed_subscriber_ends_the_replay_in_bounded_time_with_one_line_naming_
     assert f"{TOPIC}: a reliable subscriber has taken nothing" in err   # the warning first
     last = err.strip().splitlines()[-1]
     assert last.startswith(f"replay: error: {TOPIC}: ") and "stopped" in last, last
+
+
+@pytest.mark.ros
+def test_ctrl_c_while_waiting_for_a_subscriber_ends_the_replay_cleanly(long_bag, env, procs, tmp_path):
+    _subscriber(procs, env, tmp_path / "stuck.json", "reliable", 3600.0)
+    rep = _replay(procs, env, long_bag, n_subscribers=1, stall_timeout_s=300.0)
+    seen = []
+    for line in rep.stderr:                        # until the replay says it is waiting
+        seen.append(line)
+        if f"{TOPIC}: a reliable subscriber has taken nothing" in line:
+            break
+    assert rep.poll() is None, "".join(seen)
+    rep.send_signal(signal.SIGINT)
+    _, err = rep.communicate(timeout=60)
+    assert rep.returncode == 130, err
+    assert "Traceback" not in "".join(seen) + err
 
 
 # ------------------------------------------------------------------------- subscriber process

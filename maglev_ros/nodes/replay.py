@@ -17,7 +17,7 @@ Parameters (``--ros-args -p name:=value`` or ``--params-file``):
                                  launcher lists the graph's other nodes, so none misses the start)
   wait_timeout_s (float, 10)     ... subscribers / nodes, at most this long
   linger_s (float, 0.5)          keep the node alive this long after the last message
-  stall_timeout_s (float, 60)    give up (exit 1, naming the topic) when a reliable subscriber
+  stall_timeout_s (float, 300)   give up (exit 1, naming the topic) when a reliable subscriber
                                  takes nothing for this long (stuck, or killed and still matched)
 
 Timing follows the messages' header stamps (the contract's time truth; a block goes out at
@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import os
 import select
+import signal
 import sys
 import termios
 import threading
@@ -49,6 +50,7 @@ from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import SetBool, Trigger
 
@@ -80,7 +82,7 @@ class ReplayNode(Node):
         self.wait_nodes = [n for n in p("wait_nodes", [""]).value if n]
         self.wait_timeout_s = num("wait_timeout_s", 10.0)
         self.linger_s = num("linger_s", 0.5)
-        stall_timeout_s = num("stall_timeout_s", 60.0)
+        stall_timeout_s = num("stall_timeout_s", 300.0)
         if not self.bag:
             raise UserError("parameter 'bag' is required (-p bag:=PATH)")
         self.clock = ReplayClock(rate=None if self.fast else check_rate(self.rate))
@@ -140,6 +142,9 @@ class ReplayNode(Node):
             try:
                 pub.publish(cdr)
             except RCLError:
+                if not self.context.ok():     # shut down under us: not a subscriber's doing
+                    self.quit = True
+                    return False
                 if subscribers is None:
                     subscribers = pub.get_subscription_count()
                 wait_s = bp.refused(topic)
@@ -174,7 +179,7 @@ class ReplayNode(Node):
                 continue
             budget_s = bp.drain_budget_s(topic)
             start, warned = time.monotonic(), False
-            while not pub.wait_for_all_acked(Duration(nanoseconds=100_000_000)):
+            while not self.quit and not pub.wait_for_all_acked(Duration(nanoseconds=100_000_000)):
                 executor.spin_once(timeout_sec=0.0)
                 if last_clock_ns is not None:
                     self.publish_clock(last_clock_ns)
@@ -248,10 +253,12 @@ class _Progress:
 
 def _wait_until(node: ReplayNode, executor, ready, what) -> bool:
     deadline = time.monotonic() + node.wait_timeout_s
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not node.quit:
         executor.spin_once(timeout_sec=0.05)
         if ready():
             return True
+    if node.quit:
+        return False
     node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what()}; starting anyway")
     return False
 
@@ -370,12 +377,23 @@ def replay(node: ReplayNode, executor) -> None:
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
+    # SIGINT/SIGTERM end the loops through ``quit`` instead of rclpy invalidating the context under
+    # a publish that is waiting for a subscriber (a traceback, not an exit)
+    rclpy.init(args=args if args is not None else sys.argv,
+               signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = SingleThreadedExecutor()
+    stop = {"signum": None}
+
+    def on_signal(signum, frame):
+        stop["signum"] = signum
+        if node is not None:
+            node.quit = True
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     code = 0
     try:
         node = ReplayNode()
+        node.quit = stop["signum"] is not None
         executor.add_node(node)
         replay(node, executor)
     except (UserError, Stalled) as exc:
@@ -384,6 +402,10 @@ def main(args=None) -> int:
     except KeyboardInterrupt:
         code = 130
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if stop["signum"] is not None and code == 0:
+            code = 128 + stop["signum"]
         executor.shutdown()
         if node is not None:
             node.destroy_node()

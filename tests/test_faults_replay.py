@@ -1,6 +1,6 @@
 """Replay under back-pressure: a subscriber that cannot keep up slows a ``--fast`` replay down
 (never a crash, never a lost block), a best-effort one never holds it, a gone one ends it in
-bounded time with one line naming the topic.
+bounded time with one line naming the topic, and Ctrl-C while it waits ends it cleanly.
 
 The ROS tests run a real graph: the replay process and subscriber processes started from this
 file (``python tests/test_faults_replay.py OUT TOPIC QOS SLEEP_S``), over a 30-min recording of

@@ -17,17 +17,27 @@ Parameters (``--ros-args -p name:=value`` or ``--params-file``):
                                  launcher lists the graph's other nodes, so none misses the start)
   wait_timeout_s (float, 10)     ... subscribers / nodes, at most this long
   linger_s (float, 0.5)          keep the node alive this long after the last message
+  stall_timeout_s (float, 300)   give up (exit 1, naming the topic) when a reliable subscriber
+                                 takes nothing for this long (stuck, or killed and still matched)
 
 Timing follows the messages' header stamps (the contract's time truth; a block goes out at
 the stamp of its first sample, in the bag's receive order, and /clock carries the same times);
-the messages themselves are published as the recorded CDR bytes, never deserialised. The metadata topic is latched
-(transient local). Pause/resume: services ``~/set_paused`` (std_srvs/SetBool) and
+the messages themselves are published as the recorded CDR bytes, never deserialised. The metadata
+topic is latched (transient local). Pause/resume: services ``~/set_paused`` (std_srvs/SetBool) and
 ``~/toggle_pause`` (std_srvs/Trigger), or the space bar when run in a terminal (q quits).
+
+Data topics are reliable keep-all: a subscriber that cannot keep up fills its writer's history,
+a publish then waits for room and, after DDS's blocking time, fails without queuing; the replay
+offers the same message again until it is taken (``replay_timing.Backpressure``), so it runs at
+the pace of its slowest reliable subscriber (best-effort ones hold nothing) and loses nothing. At
+the end it waits until every reliable subscriber has acknowledged every message, since a writer
+that goes away takes the messages it still holds with it.
 """
 from __future__ import annotations
 
 import os
 import select
+import signal
 import sys
 import termios
 import threading
@@ -35,39 +45,49 @@ import time
 import tty
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import SetBool, Trigger
 
 from maglev_ros.contract import TOPIC_METADATA
 from maglev_ros.errors import UserError
 from maglev_ros.nodes._common import QOS_CLOCK, message_class, qos_for
-from maglev_ros.replay_timing import ReplayClock, check_rate
+from maglev_ros.replay_timing import Backpressure, ReplayClock, Stalled, check_rate
+
+# what rclpy raises when the writer cannot queue a message (rmw: "cannot publish data")
+RCLError = _rclpy.RCLError
 
 
 class ReplayNode(Node):
     def __init__(self) -> None:
         super().__init__("replay")
-        p = self.declare_parameter
+        p, num = self.declare_parameter, self._number
         self.bag = p("bag", "").value
-        self.rate = p("rate", 1.0).value
+        self.rate = num("rate", 1.0)
         self.fast = p("fast", False).value
-        self.start_offset_s = p("start_offset_s", 0.0).value
-        self.duration_s = p("duration_s", 0.0).value
+        self.start_offset_s = num("start_offset_s", 0.0)
+        self.duration_s = num("duration_s", 0.0)
         self.loop = p("loop", False).value
         self.topics = [t for t in p("topics", [""]).value if t]
         self.clock_on = p("clock", True).value
-        self.clock_period_s = p("clock_period_s", 0.01).value
+        self.clock_period_s = num("clock_period_s", 0.01)
         start_paused = p("paused", False).value
         self.progress_on = p("progress", True).value
         self.wait_subscribers = p("wait_subscribers", 0).value
         self.wait_nodes = [n for n in p("wait_nodes", [""]).value if n]
-        self.wait_timeout_s = p("wait_timeout_s", 10.0).value
-        self.linger_s = p("linger_s", 0.5).value
+        self.wait_timeout_s = num("wait_timeout_s", 10.0)
+        self.linger_s = num("linger_s", 0.5)
+        stall_timeout_s = num("stall_timeout_s", 300.0)
         if not self.bag:
             raise UserError("parameter 'bag' is required (-p bag:=PATH)")
         self.clock = ReplayClock(rate=None if self.fast else check_rate(self.rate))
+        self.backpressure = Backpressure(stall_timeout_s=stall_timeout_s,
+                                         warn_after_s=min(5.0, stall_timeout_s / 2))
         if start_paused:
             self.clock.pause()
         self.quit = False
@@ -78,6 +98,13 @@ class ReplayNode(Node):
         self._clock_pub = self.create_publisher(Clock, "/clock", QOS_CLOCK) if self.clock_on else None
         self.create_service(SetBool, "~/set_paused", self._on_set_paused)
         self.create_service(Trigger, "~/toggle_pause", self._on_toggle)
+
+    def _number(self, name: str, default: float) -> float:
+        """A float parameter that also takes an integer (``-p stall_timeout_s:=20``)."""
+        value = self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UserError(f"parameter '{name}': expected a number, got {value!r}")
+        return float(value)
 
     # -- control -------------------------------------------------------------------------
     def _on_set_paused(self, request, response):
@@ -104,6 +131,71 @@ class ReplayNode(Node):
                 pub = self.create_publisher(cls, topic, qos_for(topic))
             self._pubs[topic] = pub
         return pub
+
+    def offer(self, executor, pub, topic: str, cdr: bytes) -> bool:
+        """Publish ``cdr``; while the writer refuses it (a reliable subscriber is behind), serve the
+        executor, wait and offer it again. False if the user quits meanwhile; Stalled past the bound."""
+        bp = self.backpressure
+        subscribers = None
+        t0 = time.monotonic()
+        while True:
+            try:
+                pub.publish(cdr)
+            except RCLError:
+                if not self.context.ok():     # shut down under us: not a subscriber's doing
+                    self.quit = True
+                    return False
+                if subscribers is None:
+                    subscribers = pub.get_subscription_count()
+                wait_s = bp.refused(topic)
+                if bp.warn_due():
+                    self.get_logger().warning(
+                        f"{topic}: a reliable subscriber has taken nothing for {bp.stalled_s():.0f} s; "
+                        f"waiting for it (at most {bp.stall_timeout_s:.0f} s)")
+                executor.spin_once(timeout_sec=0.0)
+                if self.quit:
+                    return False
+                # returns early if everything is acknowledged (then the history has room again)
+                pub.wait_for_all_acked(Duration(nanoseconds=int(wait_s * 1e9)))
+                continue
+            stalled_s = bp.stalled_s()
+            bp.accepted(topic, time.monotonic() - t0)
+            left = pub.get_subscription_count() if subscribers is not None else None
+            if left is not None and left < subscribers:
+                self.get_logger().warning(f"{topic}: a subscriber is gone ({subscribers} -> {left}); "
+                                          f"publishing again after {stalled_s:.1f} s")
+            elif stalled_s >= bp.warn_after_s:
+                self.get_logger().info(f"{topic}: the subscribers take messages again after "
+                                       f"{stalled_s:.1f} s")
+            return True
+
+    def drain(self, executor, last_clock_ns) -> None:
+        """Wait until every reliable subscriber has acknowledged every message: a writer that goes
+        away takes the messages it still holds with it."""
+        bp = self.backpressure
+        t0 = time.monotonic()
+        for topic, pub in self._pubs.items():
+            if pub is None or topic == TOPIC_METADATA:
+                continue
+            budget_s = bp.drain_budget_s(topic)
+            start, warned = time.monotonic(), False
+            while not self.quit and not pub.wait_for_all_acked(Duration(nanoseconds=100_000_000)):
+                executor.spin_once(timeout_sec=0.0)
+                if last_clock_ns is not None:
+                    self.publish_clock(last_clock_ns)
+                if self.quit:
+                    return
+                waited = time.monotonic() - start
+                if waited > budget_s:
+                    raise Stalled(topic, waited, "left the last messages unacknowledged")
+                if not warned and waited >= bp.warn_after_s:
+                    warned = True
+                    self.get_logger().info(f"{topic}: waiting for the reliable subscribers to take "
+                                           f"the last messages (at most {budget_s:.0f} s)")
+        waited = time.monotonic() - t0
+        if waited >= 0.5:
+            self.get_logger().info(f"every reliable subscriber acknowledged every message "
+                                   f"({waited:.1f} s after the last one was published)")
 
     def publish_clock(self, bag_ns: int) -> None:
         if self._clock_pub is not None:
@@ -161,10 +253,12 @@ class _Progress:
 
 def _wait_until(node: ReplayNode, executor, ready, what) -> bool:
     deadline = time.monotonic() + node.wait_timeout_s
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not node.quit:
         executor.spin_once(timeout_sec=0.05)
         if ready():
             return True
+    if node.quit:
+        return False
     node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what()}; starting anyway")
     return False
 
@@ -252,7 +346,8 @@ def replay(node: ReplayNode, executor) -> None:
                         last_clock_ns = stamp_ns
                     pub = node.publisher_for(topic, msgtype)
                     if pub is not None:
-                        pub.publish(cdr)
+                        if not node.offer(executor, pub, topic, cdr):
+                            return
                         node.published += 1
                     progress.show(node, (stamp_ns - window_start) * 1e-9)
                 if not node.loop:
@@ -261,9 +356,15 @@ def replay(node: ReplayNode, executor) -> None:
             if node.progress_on:
                 sys.stderr.write("\n")
             wall = time.monotonic() - progress.t_wall0
+            bp = node.backpressure
+            waits = "".join(f"; a reliable subscriber of {t} set the pace: {bp.held_n.get(t, 0)} "
+                            f"message(s) waited {bp.held_s.get(t, 0.0):.1f} s for room in the "
+                            f"writer's history, {bp.refused_n.get(t, 0)} refused and offered again"
+                            for t in bp.paced(wall))
             node.get_logger().info(
                 f"published {node.published} messages, {total_s:.2f} s of recording in "
-                f"{wall:.2f} s wall ({total_s / max(wall, 1e-9):.1f}x real time)")
+                f"{wall:.2f} s wall ({total_s / max(wall, 1e-9):.1f}x real time){waits}")
+            node.drain(executor, last_clock_ns)
         finally:
             keys.restore()
     # Let reliable writers hand out what they hold before the node goes away; /clock (best effort,
@@ -277,20 +378,35 @@ def replay(node: ReplayNode, executor) -> None:
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
+    # SIGINT/SIGTERM end the loops through ``quit`` instead of rclpy invalidating the context under
+    # a publish that is waiting for a subscriber (a traceback, not an exit)
+    rclpy.init(args=args if args is not None else sys.argv,
+               signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = SingleThreadedExecutor()
+    stop = {"signum": None}
+
+    def on_signal(signum, frame):
+        stop["signum"] = signum
+        if node is not None:
+            node.quit = True
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     code = 0
     try:
         node = ReplayNode()
+        node.quit = stop["signum"] is not None
         executor.add_node(node)
         replay(node, executor)
-    except UserError as exc:
+    except (UserError, Stalled) as exc:
         print(f"replay: error: {exc}", file=sys.stderr)
         code = 1
     except KeyboardInterrupt:
         code = 130
     finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if stop["signum"] is not None and code == 0:
+            code = 128 + stop["signum"]
         executor.shutdown()
         if node is not None:
             node.destroy_node()

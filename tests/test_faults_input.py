@@ -90,3 +90,17 @@ def test_nodes_take_blocks_in_si_as_the_verbs_do():
     gate.new_stream()
     assert gate.block(_msg(("M1A", "M2A"), ("furlong", "g"), x), "/testline/vehicle/accel") is None
     assert diag.check().values["dropped_unit"] == 1 and "furlong" in node.log.lines[-1]
+
+
+def test_a_topic_name_ros_refuses_is_skipped_with_one_warning(tmp_path):
+    topics = example_topics()
+    md = make_metadata(topics)
+    good = next(iter(topics))
+    topics["/testline/extra/bad name"] = topics[good]
+    bag = write_foreign_bag(tmp_path / "bag", md, topics)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(125 + os.getpid() % 40), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--fast", "--quiet"],
+                       env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    warn = [ln for ln in r.stderr.splitlines() if "bad name" in ln]
+    assert len(warn) == 1 and "not a valid ROS 2 topic name" in warn[0]

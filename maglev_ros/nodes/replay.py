@@ -63,6 +63,17 @@ from maglev_ros.replay_timing import Backpressure, ReplayClock, Stalled, check_r
 RCLError = _rclpy.RCLError
 
 
+def _invalid_topic_name(topic: str) -> str:
+    """Why ``topic`` cannot be a ROS 2 topic ('' if it can): a bag written by other tools may hold any name."""
+    from rclpy.exceptions import InvalidTopicNameException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    try:
+        validate_full_topic_name(topic)
+    except InvalidTopicNameException as exc:
+        return str(exc).splitlines()[0].removeprefix("Invalid topic name: ")
+    return ""
+
+
 class ReplayNode(Node):
     def __init__(self) -> None:
         super().__init__("replay")
@@ -125,7 +136,10 @@ class ReplayNode(Node):
         pub = self._pubs.get(topic)
         if pub is None and topic not in self._pubs:
             cls = message_class(msgtype)
-            if cls is None:
+            bad_name = _invalid_topic_name(topic)
+            if bad_name:
+                self.get_logger().warning(f"{topic!r}: not a valid ROS 2 topic name ({bad_name}); not published")
+            elif cls is None:
                 self.get_logger().warning(f"{topic}: type {msgtype} is not available; not published")
             else:
                 pub = self.create_publisher(cls, topic, qos_for(topic))

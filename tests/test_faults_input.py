@@ -104,3 +104,24 @@ def test_a_topic_name_ros_refuses_is_skipped_with_one_warning(tmp_path):
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
     warn = [ln for ln in r.stderr.splitlines() if "bad name" in ln]
     assert len(warn) == 1 and "not a valid ROS 2 topic name" in warn[0]
+
+
+@pytest.mark.parametrize("verb", ["info", "modes", "irregularity", "diagnose"])
+@pytest.mark.parametrize("damage", ["corrupt_yaml", "zero_byte_mcap"])
+def test_a_damaged_bag_file_is_one_line_before_any_work(tmp_path, damage, verb, capsys):
+    import shutil
+    from pathlib import Path
+    sample = Path(__file__).resolve().parents[1] / "bags" / "paper_ambient"
+    if damage == "corrupt_yaml":
+        bag = tmp_path / "bag"
+        shutil.copytree(sample, bag)
+        (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
+    else:
+        bag = tmp_path / "empty.mcap"
+        bag.write_bytes(b"")
+    argv = {"info": ["info", str(bag)], "modes": ["modes", str(bag)],
+            "irregularity": ["irregularity", str(bag), "--out", str(tmp_path / "r.csv")],
+            "diagnose": ["diagnose", "--pass", str(bag), "--out", str(tmp_path / "d")]}[verb]
+    assert main(argv) == 1
+    _one_line(capsys.readouterr().err, str(bag), "cannot open bag")
+    assert not (tmp_path / "r.csv").exists() and not (tmp_path / "d").exists()

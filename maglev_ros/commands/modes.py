@@ -93,17 +93,92 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
     each came from. ``scale_channels`` None: divide each channel by its std only when the
     channels' units differ."""
     from maglev_ros.bag_reader import BagReader
-    from maglev_ros.modal.bands import identify_bands, plan_bands
-    from maglev_ros.modal.free_decay import select_free_decay
 
     with BagReader(path) as r:
         if TOPIC_ACCEL not in r.topics:
             raise UserError(f"{path}: topic {TOPIC_ACCEL} not in bag; expected guideway "
                             f"accelerations (topics: {', '.join(sorted(r.topics)) or 'none'})")
-        cd = r.read_topic(TOPIC_ACCEL)
         md = r.metadata
         kind = md.run_kind if md is not None else "ambient"
         pos = r.read_topic(TOPIC_POSITION) if TOPIC_POSITION in r.topics else None
+        # the accelerations are read window by window while identifying: memory stays bounded
+        return _identify_streamed(path, r, md, kind, pos, fmin_hz, fmax_hz, block_rows,
+                                  max_order, decimate_to_hz, window, scale_channels)
+
+
+def _identify_streamed(path, r, md, kind, pos, fmin_hz, fmax_hz, block_rows, max_order,
+                       decimate_to_hz, window, scale_channels) -> BagModes:
+    """identify_modes' processing on the open bag ``r``: every pass over the accelerations reads
+    them in windows (:mod:`maglev_ros.bag_windows`), the identification sums over chunks
+    (:mod:`maglev_ros.modal.chunked`), with the whole-array path's results."""
+    from maglev_ros.bag_windows import iter_windows, scan_topic
+    from maglev_ros.modal.bands import plan_bands
+    from maglev_ros.modal.chunked import TopicChunks, identify_bands_chunked
+    from maglev_ros.modal.free_decay import exit_time_s, position_window_streamed
+
+    scan = scan_topic(r, TOPIC_ACCEL)
+    fs = float(scan.sample_rate_hz)
+    channels, units = scan.channels, scan.units
+    use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
+    end = _span_end_m(md, channels) if md is not None else None
+    by_position = pos is not None and "position_m" in pos.channels and end is not None
+    if use_decay and not by_position:
+        # the envelope rule needs each channel's median over the record: read it whole
+        return _identify_whole(path, r.read_topic(TOPIC_ACCEL), md, kind, pos, fmin_hz, fmax_hz,
+                               block_rows, max_order, decimate_to_hz, window, scale_channels)
+    first = next(iter_windows(r, scan)).time_s
+    t_first = float(first[0]) if first.size else 0.0
+    counted = [0]
+
+    def rel_times():
+        """Sample times after the first sample, window by window (counting the samples)."""
+        for w in iter_windows(r, scan):
+            counted[0] += w.time_s.size
+            yield w.time_s - t_first
+
+    start = 0
+    if use_decay:
+        offs = md.magnet_offsets_m or (0.0,)
+        t_exit = exit_time_s(pos.channel("position_m"), pos.time_s - t_first, end, min(offs))
+        win = position_window_streamed(rel_times(), fs, t_exit)
+        start, stop = win.start_index, win.stop_index
+    else:
+        for _ in rel_times():
+            pass
+    n = counted[0]
+    stop = stop if use_decay else n
+    info = {"bag": str(path), "topic": TOPIC_ACCEL, "run_kind": kind, "fs_hz": fs,
+            "n_samples": int(n), "channels": list(channels)}
+    if use_decay:
+        info["free_decay_window"] = win.to_dict()
+    if scale_channels is None:
+        # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
+        # mixed units have no common scale, so each channel is brought to unit std
+        scale_channels = len(set(units)) > 1
+        unit = units[0] if units else "?"
+        scale_src = ("channels' units differ" if scale_channels else
+                     f"all channels in {unit}: recorded amplitudes kept")
+    else:
+        scale_src = "user"
+    try:
+        plan = plan_bands(fs, stop - start, len(channels), stationary=not use_decay,
+                          fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
+                          max_order=max_order, decimate_to_hz=decimate_to_hz,
+                          scale_channels=scale_channels, scale_source=scale_src)
+    except UserError as e:
+        raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
+    info["settings"] = plan.to_dict()
+    res, _ = identify_bands_chunked(TopicChunks(r, scan, n, start, stop), fs, plan, channels)
+    return BagModes(res, info, plan)
+
+
+def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_rows=None,
+                    max_order=None, decimate_to_hz=None, window="auto",
+                    scale_channels=None) -> BagModes:
+    """identify_modes on the whole topic ``cd`` in memory."""
+    from maglev_ros.modal.bands import identify_bands, plan_bands
+    from maglev_ros.modal.free_decay import select_free_decay
+
     fs = float(cd.sample_rate_hz)
     data = np.asarray(cd.data, dtype=float)
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")

@@ -58,21 +58,52 @@ def read_inputs(path: str):
     from maglev_ros.bag_reader import BagReader
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
-    from maglev_ros.irregularity.profile import magnet_channel_pairs
     if not Path(path).exists():
         raise UserError(f"{path}: no such bag")
     with BagReader(path) as r:
         md = r.metadata
-        for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
-            if topic not in r.topics:
-                kind = md.run_kind
-                raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
-                                    "vehicle accel, gap and position"
-                                    + (f"; run.kind is {kind!r}: no vehicle pass)"
-                                       if kind and kind != "pass" else ")"))
+        _need_topics(path, r)
         # samples placed at the time they describe (optional acquisition delay in the metadata)
         accel, gap, pos = (r.read_topic(t).delayed_by(md.acquisition_delay_s(t))
                            for t in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
+    return {"accel": accel, "gap": gap, "position": pos, **_check_inputs(path, md, accel, gap, pos)}
+
+
+def open_inputs(r, path: str, window_s: float | None = None) -> dict:
+    """The inputs of :func:`read_inputs` for the open bag ``r``, with the accelerations and gaps
+    left in the bag: ``source`` reads them window by window
+    (:func:`maglev_ros.irregularity.streamed.profile_streamed`)."""
+    from maglev_ros.bag_windows import scan_topic
+    from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                     TOPIC_VEHICLE_POSITION)
+    from maglev_ros.irregularity.streamed import VehicleTopics
+    md = r.metadata
+    _need_topics(path, r)
+    accel, gap = scan_topic(r, TOPIC_VEHICLE_ACCEL), scan_topic(r, TOPIC_VEHICLE_GAP)
+    pos = r.read_topic(TOPIC_VEHICLE_POSITION).delayed_by(md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
+    src = VehicleTopics(r, accel, gap, md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL),
+                        md.acquisition_delay_s(TOPIC_VEHICLE_GAP), pos, window_s)
+    return {"source": src, **_check_inputs(path, md, accel, gap, pos)}
+
+
+def _need_topics(path, r) -> None:
+    from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                     TOPIC_VEHICLE_POSITION)
+    md = r.metadata
+    for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
+        if topic not in r.topics:
+            kind = md.run_kind
+            raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
+                                "vehicle accel, gap and position"
+                                + (f"; run.kind is {kind!r}: no vehicle pass)"
+                                   if kind and kind != "pass" else ")"))
+
+
+def _check_inputs(path, md, accel, gap, pos) -> dict:
+    """Magnet offsets, nominal gap and channel pairs of the recording, after checking units and
+    channels (``accel``, ``gap``: anything with ``channels`` and ``units``)."""
+    from maglev_ros.contract import TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION
+    from maglev_ros.irregularity.profile import magnet_channel_pairs
     offsets = md.magnet_offsets_m
     if not offsets:
         raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")
@@ -85,8 +116,7 @@ def read_inputs(path: str):
     for ch in ("position_m", "speed_mps"):
         if ch not in pos.channels:
             raise ContractError(f"{path}: {TOPIC_VEHICLE_POSITION}: channel {ch} missing")
-    return {"accel": accel, "gap": gap, "position": pos, "magnet_offsets_m": offsets,
-            "nominal_gap_m": g0, "channel_pairs": pairs}
+    return {"magnet_offsets_m": offsets, "nominal_gap_m": g0, "channel_pairs": pairs}
 
 
 def analyse(inputs: dict, args):
@@ -102,7 +132,12 @@ def analyse(inputs: dict, args):
                             magnet_length_m=args.magnet_length_m,
                             band_speed_mps=args.band_speed_mps,
                             max_wavelength_m=args.max_wavelength_m)
-    res = prof.fit(**inputs)
+    if "source" in inputs:       # a recording read window by window
+        from maglev_ros.irregularity.streamed import profile_streamed
+        res = profile_streamed(inputs["source"], prof, inputs["magnet_offsets_m"],
+                               inputs["nominal_gap_m"], inputs["channel_pairs"])
+    else:
+        res = prof.fit(**inputs)
     spec, comp, notes = None, [], []
     try:
         spec = profile_psd(res.position_m, res.irregularity_m, confidence=args.confidence,
@@ -193,8 +228,12 @@ def write_plot(path: str, res, spec, comp) -> None:
 
 
 def run(args) -> int:
-    inputs = read_inputs(args.bag)
-    res, spec, comp, rms, notes = analyse(inputs, args)
+    from maglev_ros.bag_reader import BagReader
+    if not Path(args.bag).exists():
+        raise UserError(f"{args.bag}: no such bag")
+    # accelerations and gaps stay in the bag, read window by window: memory stays bounded
+    with BagReader(args.bag) as r:
+        res, spec, comp, rms, notes = analyse(open_inputs(r, args.bag), args)
     write_csv(args.out, res, rms, args.bag)
     if args.json_out:
         with open(args.json_out, "w", encoding="utf-8") as fh:

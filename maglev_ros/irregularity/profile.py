@@ -443,6 +443,14 @@ class InertialProfiler:
         if t.size < 4:
             raise UserError("/testline/vehicle/accel: fewer than 4 samples")
         fs = _rate(accel)
+        xref, v = self.reference_motion(t, position)
+        tg = np.asarray(gap.time_s, float)
+        same = tg.size == t.size and np.allclose(tg, t, atol=0.25 / fs)
+        return t, fs, xref, v, tg, same
+
+    def reference_motion(self, t, position):
+        """(x, |speed|) of the reference point at times ``t`` from the position channels; speed
+        NaN where ``t`` is more than 1.5 position samples outside the position record."""
         tp = np.asarray(position.time_s, float)
         pos = _channel(position, "position_m", "/testline/vehicle/position")
         spd = _channel(position, "speed_mps", "/testline/vehicle/position")
@@ -459,20 +467,22 @@ class InertialProfiler:
         xref = xref + np.where(t > tp[-1], (t - tp[-1]) * spd[-1], 0.0) \
             + np.where(t < tp[0], (t - tp[0]) * spd[0], 0.0)
         v[outside] = np.nan              # never map samples without a position
-        tg = np.asarray(gap.time_s, float)
-        same = tg.size == t.size and np.allclose(tg, t, atol=0.25 / fs)
-        return t, fs, xref, v, tg, same
+        return xref, v
 
-    def _gap_on(self, t, tg, same, gcol):
+    def _gap_on(self, t, tg, same, gcol, step_s=None, span_s=None):
+        """The gap channel at the accel times ``t``. ``step_s`` (the gap's median sample step)
+        and ``span_s`` (its first and last time) default to those of ``tg``: a caller holding a
+        piece of the gap record gives the whole record's."""
         if same:
             return gcol
         gi = np.interp(t, tg, gcol)
         # mark samples whose nearest gap samples are far away (gap dropout in time)
         j = np.clip(np.searchsorted(tg, t), 1, tg.size - 1)
         dist = np.minimum(np.abs(tg[j] - t), np.abs(t - tg[j - 1]))
-        fsg = 1.0 / np.median(np.diff(tg))
+        fsg = 1.0 / (np.median(np.diff(tg)) if step_s is None else step_s)
         gi[dist > 1.5 / fsg] = np.nan
-        gi[(t < tg[0]) | (t > tg[-1])] = np.nan
+        lo, hi = (tg[0], tg[-1]) if span_s is None else span_s
+        gi[(t < lo) | (t > hi)] = np.nan
         return gi
 
     def _deflection(self, deflection, t, xm, spec, k):

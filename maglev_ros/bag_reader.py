@@ -536,6 +536,31 @@ class BagReader:
         outside [start_time_s + start_s, + duration_s) are cut off. NaN/inf samples raise
         ContractError in strict mode and are kept (and reported) otherwise.
         """
+        return self._read_topic_blocks(topic, start_s, duration_s)[0]
+
+    def read_checked(self, topics: Iterable[str] | str, sensor_map: bool = False):
+        """Read topics through the sensor-health check (:func:`maglev_ros.health.check_topics`):
+        ({topic: ChannelData in SI, bad channels left out where that is safe}, HealthReport).
+
+        What every verb reads its data with. ``sensor_map``: the verb places channels by the
+        metadata's sensors (magnet, position), so a channel the metadata does not place is an
+        error. Raises one UserError line where a result would be wrong."""
+        from maglev_ros.health import check_topics
+
+        names = [topics] if isinstance(topics, str) else list(topics)
+        read = {t: self._read_topic_blocks(t) for t in names}
+        # topics not read, spanned from their first block (enough to see an hour's offset)
+        others = {t: (i.first_stamp_ns * 1e-9, i.first_stamp_ns * 1e-9
+                      + i.count * (i.block_samples or 0) / i.sample_rate_hz)
+                  for t, i in self.topics.items() if t not in read and i.is_sensor_block
+                  and i.first_stamp_ns is not None and i.sample_rate_hz}
+        return check_topics(str(self.path), self.metadata, read, sensor_map=sensor_map,
+                            other_intervals=others)
+
+    def _read_topic_blocks(self, topic: str, start_s: float | None = None,
+                           duration_s: float | None = None) -> tuple:
+        """(read_topic's ChannelData, every block's header stamp [ns], sample count and stated
+        rate as read, before sorting and repairs: what the stated rate is checked against)."""
         if topic not in self.topics:
             self._need_open()
             raise self._fail(f"topic {topic} not in bag (topics: {', '.join(sorted(self.topics))})")
@@ -573,8 +598,9 @@ class BagReader:
             offs.append(pos)
             pos += n
         if channels is None:
-            return ChannelData(topic, info.channels, info.units, info.sample_rate_hz or 0.0,
-                               np.zeros(0), np.zeros((0, len(info.channels))), tuple(issues))
+            return (ChannelData(topic, info.channels, info.units, info.sample_rate_hz or 0.0,
+                                np.zeros(0), np.zeros((0, len(info.channels))), tuple(issues)),
+                    np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
         stamps_a = np.asarray(stamps, dtype=np.int64)
         offs_a = np.asarray(offs, dtype=np.int64)
         counts_a = np.diff(np.append(offs_a, pos))
@@ -624,7 +650,8 @@ class BagReader:
                     raise self._fail(f"{topic} [{channels[c]}]: {msg}")
                 issues.append(Issue("error", topic, channels[c], float(time_s[r[0]]), "nan", msg))
         rate = Counter(rates_sel.tolist()).most_common(1)[0][0]
-        return ChannelData(topic, channels, units, float(rate), time_s, data, tuple(issues))
+        return (ChannelData(topic, channels, units, float(rate), time_s, data, tuple(issues)),
+                stamps_a, counts_a, rates_a)
 
     @staticmethod
     def _resolve_overlaps(topic, order, stamps_a, counts_a, rates_a, datas, issues):
@@ -668,9 +695,16 @@ class BagReader:
         return keep, heads
 
     # ---------------------------------------------------------------------------- checks
-    def check(self) -> list[Issue]:
-        """Stream over the bag and list every contract problem (see module docstring)."""
+    def check(self, health: bool = True) -> list[Issue]:
+        """Stream over the bag and list every contract problem (see module docstring).
+
+        ``health``: also the sensor-health findings (:mod:`maglev_ros.health`): stated rate vs
+        stamps and topics that do not overlap in time as errors; flat-lined, clipped and
+        implausible channels (scanned in SI) and metadata naming no sensors as warnings."""
+        from maglev_ros import health as hl
+
         self._need_open()
+        scans: dict[str, tuple] = {}
         issues: list[Issue] = list(self.open_issues)
         per_kind: Counter = Counter()
         overflow: Counter = Counter()
@@ -750,6 +784,12 @@ class BagReader:
                         nan_stats[k][0] = min(nan_stats[k][0], t_s + rows[0] / rate)
                     nan_stats[k][1] += rows.size
                     nan_stats[k][2] += 1
+            if health:
+                sc = scans.get(topic)
+                if sc is None:
+                    sc = scans[topic] = self._health_scan(topic, chans, units, rate)
+                if chans == sc[1] and fin.all():
+                    sc[0].add(data[:, sc[2]] * sc[3])
             digest = hashlib.blake2b(flat.tobytes(), digest_size=8).digest()
             recs[topic].append((stamp, data.shape[0], rate, digest))
 
@@ -771,6 +811,22 @@ class BagReader:
                       f"{n} NaN/inf sample(s) in {nb} block(s), first at t={t_first:.6f} s"))
         for topic, rec in recs.items():
             self._check_timing(topic, rec, add)
+        if health:
+            for topic, rec in recs.items():
+                bad = hl.rate_issue(topic, [r[2] for r in rec], [r[0] for r in rec], [r[1] for r in rec])
+                if bad is not None:
+                    add(bad)
+            for i in hl.time_offset_issues({t: (st["first_stamp_s"], st["end_s"])
+                                            for t, st in self.topic_stats.items()}):
+                add(i)
+            for sc in scans.values():
+                for i in sc[0].issues():
+                    add(i)
+            if self.metadata is not None and not self.metadata.sensors:
+                add(Issue("warning", TOPIC_METADATA, None, None, "sensor_map",
+                          "metadata key sensors: names no sensors; verbs that place channels by "
+                          "magnet or position (irregularity, update, diagnose, modes of a pass) "
+                          "refuse the recording"))
         if known is not None:
             for sid, s in self.metadata.sensors.items():
                 if s.topic in self.topics and sid not in recorded:
@@ -783,6 +839,21 @@ class BagReader:
         issues.sort(key=lambda i: (i.severity != "error", i.topic or "",
                                    float("inf") if i.time_s is None else i.time_s))
         return issues
+
+    def _health_scan(self, topic: str, chans, units, rate: float) -> tuple:
+        """(TopicScan over the channels whose unit converts to the topic's SI unit, their
+        column indices, their SI factors) for check()."""
+        from maglev_ros.contract import si_factor
+        from maglev_ros.health import TopicScan
+        cols, factors = [], []
+        for j, (ch, u) in enumerate(zip(chans, units)):
+            f = si_factor(topic, ch, u)
+            if f is not None:
+                cols.append(j)
+                factors.append(f[1])
+        g0 = self.metadata.nominal_gap_m if self.metadata is not None else None
+        scan = TopicScan(topic, [chans[j] for j in cols], rate, g0)
+        return scan, chans, np.asarray(cols, dtype=np.int64), np.asarray(factors)
 
     @staticmethod
     def _check_timing(topic: str, rec: list, add) -> None:

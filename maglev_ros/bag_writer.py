@@ -18,6 +18,7 @@ import numpy as np
 from maglev_ros.contract import (SENSORBLOCK_TYPE, STRING_TYPE, TOPIC_METADATA, Metadata,
                                  metadata_from_dict)
 from maglev_ros.errors import UserError
+from maglev_ros.outputs import fsync_dir
 from maglev_ros.sensor_block import Block, block_to_msg, msgtype_name, string_msg, typestore
 
 __all__ = ["BagWriter", "STORAGES"]
@@ -83,20 +84,38 @@ class BagWriter:
         return self
 
     def close(self) -> Path:
-        """Finish the bag and move it to its final name; returns the final path."""
+        """Finish the bag, fsync it and move it to its final name; returns the final path.
+
+        On any failure the partial bag is removed and what was at the final path stays; an
+        OSError becomes a one-line UserError naming the bag and the OS reason."""
         if self._writer is None:
             raise UserError(f"{self.path}: BagWriter is not open")
-        if not self._meta_written:
-            self._write_metadata(0)
-        writer, self._writer = self._writer, None
-        writer.close()
-        tmp_bag = self._tmpdir / self.path.name
-        if self.path.exists() or self.path.is_symlink():
-            if self.path.is_dir() and not self.path.is_symlink():
-                shutil.rmtree(self.path)
-            else:
-                self.path.unlink()
-        os.replace(tmp_bag, self.path)
+        writer = self._writer
+        try:
+            if not self._meta_written:
+                self._write_metadata(0)
+            writer.close()
+            self._writer = None
+            tmp_bag = self._tmpdir / self.path.name
+            _fsync_tree(tmp_bag)
+            old = None
+            if self.path.exists() or self.path.is_symlink():
+                # moved aside, not deleted, until the new bag is in place
+                old = self._tmpdir / ".replaced"
+                os.replace(self.path, old)
+            try:
+                os.replace(tmp_bag, self.path)
+            except OSError:
+                if old is not None:
+                    os.replace(old, self.path)
+                raise
+            fsync_dir(self.path.parent)
+        except OSError as exc:
+            self.abort()
+            raise UserError(f"{self.path}: cannot write the bag ({exc.strerror or exc})") from None
+        except BaseException:
+            self.abort()
+            raise
         shutil.rmtree(self._tmpdir, ignore_errors=True)
         self._tmpdir = None
         return self.path
@@ -191,3 +210,12 @@ class BagWriter:
         """Convenience: build a Block from arrays and write it."""
         self.write_block(topic, Block.from_arrays(stamp_ns, sample_rate_hz, channels, units,
                                                   data, frame_id), log_time_ns)
+
+
+def _fsync_tree(path: Path) -> None:
+    """fsync the files of a finished bag and its directory, so its rename publishes data on disk."""
+    for f in sorted(path.rglob("*")):
+        if f.is_file() and not f.is_symlink():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+    fsync_dir(path)

@@ -20,7 +20,8 @@ __all__ = [
     "TOPIC_VEHICLE_ACCEL", "TOPIC_VEHICLE_GAP", "TOPIC_VEHICLE_POSITION", "TOPIC_BODY_ACCEL", "DATA_TOPICS",
     "SENSORBLOCK_TYPE", "STRING_TYPE", "SI_UNITS", "NON_SI_UNITS", "TOPIC_UNITS",
     "Span", "Sensor", "Metadata", "Issue", "parse_metadata", "metadata_from_dict", "metadata_issues",
-    "unit_conversion", "is_si_unit", "check_units",
+    "unit_conversion", "is_si_unit", "check_units", "expected_unit", "UnitConversion", "si_factor",
+    "to_si_units",
 ]
 
 CONTRACT_SCHEMA = "maglev-testline/1"
@@ -370,6 +371,10 @@ def parse_metadata(text: str | bytes, source: str) -> Metadata:
     except json.JSONDecodeError as exc:
         raise ContractError(f"{source}: metadata is not valid JSON ({exc.msg} at line {exc.lineno} "
                             f"column {exc.colno})") from None
+    except RecursionError:
+        # the contract's document is a few levels deep; a hostile or broken one must not crash us
+        raise ContractError(f"{source}: metadata is nested too deeply to be the contract's document "
+                            f"(expected a few levels of objects)") from None
     return metadata_from_dict(doc, source)
 
 
@@ -411,3 +416,54 @@ def check_units(topic: str, channels: tuple[str, ...] | list[str],
             issues.append(Issue("warning", topic, ch, time_s, "unit_mismatch",
                                 f"unit {u!r} but the contract expects {want!r} on this topic"))
     return issues
+
+
+@dataclass(frozen=True)
+class UnitConversion:
+    """One channel's recorded unit and how it becomes SI: value_si = value * factor."""
+
+    topic: str
+    channel: str
+    unit: str
+    si_unit: str
+    factor: float
+
+    def to_dict(self) -> dict:
+        return {"topic": self.topic, "channel": self.channel, "unit": self.unit,
+                "si_unit": self.si_unit, "factor": self.factor}
+
+
+def si_factor(topic: str, channel: str, unit: str) -> tuple[str, float] | None:
+    """(SI unit, factor) of ``channel`` on ``topic`` by the unit table, None when the unit is
+    unknown or its SI unit is not the one the contract prescribes for the topic."""
+    conv = unit_conversion(unit)
+    if conv is None:
+        return None
+    want = expected_unit(topic, channel)
+    return None if want is not None and conv[0] != want else conv
+
+
+def to_si_units(topic: str, channels, units, where: str = "") -> tuple[
+        tuple[str, ...], tuple[float, ...], tuple[UnitConversion, ...]]:
+    """SI units, the factor per channel and the conversions made, for one channel list.
+
+    The one conversion every reader of recordings uses (verbs through the health check, nodes
+    per block). Raises ContractError naming topic, channel and unit for a unit the table does
+    not know or one of the wrong kind for the topic (e.g. 'mm' on an acceleration topic).
+    """
+    si, factors, done = [], [], []
+    for ch, u in zip(channels, units):
+        conv = unit_conversion(u)
+        if conv is None:
+            raise ContractError(f"{where}{topic} [{ch}]: unit {u!r} is not in the contract's unit "
+                                f"table (SI: {', '.join(sorted(SI_UNITS))}; convertible: "
+                                f"{', '.join(NON_SI_UNITS)})")
+        want = expected_unit(topic, ch)
+        if want is not None and conv[0] != want:
+            raise ContractError(f"{where}{topic} [{ch}]: unit {u!r} measures in {conv[0]!r}; the "
+                                f"contract expects {want!r} on this topic")
+        si.append(conv[0])
+        factors.append(float(conv[1]))
+        if u != conv[0]:
+            done.append(UnitConversion(topic, ch, u, conv[0], float(conv[1])))
+    return tuple(si), tuple(factors), tuple(done)

@@ -178,7 +178,12 @@ class Faults:
     bad_length: dict = field(default_factory=dict)    # topic -> [k]: last value of block k dropped
     missing_metadata_key: str | None = None           # dotted key removed, e.g. "run.kind"
     no_metadata: bool = False                         # no /testline/metadata topic at all
+    metadata_text: str | None = None                  # this text on the metadata topic instead of the JSON
     truncate_fraction: float | None = None            # keep this fraction of the storage file
+
+
+def _meta_text(doc: dict, faults: "Faults") -> str:
+    return json.dumps(doc) if faults.metadata_text is None else faults.metadata_text
 
 
 def _drop_key(doc: dict, dotted: str) -> dict:
@@ -287,7 +292,7 @@ def write_foreign_bag(path, metadata: dict, topics: dict, block_samples=None,
             conns = {}
             if not faults.no_metadata:
                 c = w.add_connection(METADATA_TOPIC, "std_msgs/msg/String", typestore=store)
-                w.write(c, meta_time, store.serialize_ros1(String(data=json.dumps(meta_doc)),
+                w.write(c, meta_time, store.serialize_ros1(String(data=_meta_text(meta_doc, faults)),
                                                            "std_msgs/msg/String"))
             for arrive, topic, _k, _stamp, msg in events:
                 if topic not in conns:
@@ -302,7 +307,7 @@ def write_foreign_bag(path, metadata: dict, topics: dict, block_samples=None,
             conns = {}
             if not faults.no_metadata:
                 c = w.add_connection(METADATA_TOPIC, "std_msgs/msg/String", typestore=store)
-                w.write(c, meta_time, store.serialize_cdr(String(data=json.dumps(meta_doc)),
+                w.write(c, meta_time, store.serialize_cdr(String(data=_meta_text(meta_doc, faults)),
                                                           "std_msgs/msg/String"))
             for arrive, topic, _k, _stamp, msg in events:
                 if topic not in conns:

@@ -185,13 +185,14 @@ def _append_slowly(path, ready):
     def hang():
         ready.set()
         time.sleep(60)
-    h.append({"kp_a_per_m": {"value": 2.0}}, {"pass": "b"}, {}, _before_rename=hang)
+    h.append({"kp_a_per_m": {"value": 2.0}}, {"pass": "b"}, {}, _before_write=hang)
 
 
 def test_history_survives_kill_mid_write_and_reloads(tmp_path):
     path = tmp_path / "hist.jsonl"
     h = ParameterHistory(path)
     r1 = h.append({"kp_a_per_m": {"value": 1.0}}, {"pass": "a"}, {"nrmse": 0.1})
+    h.close()                                        # one writer per file: the child writes next
     ctx = mp.get_context("fork")
     ready = ctx.Event()
     p = ctx.Process(target=_append_slowly, args=(str(path), ready))

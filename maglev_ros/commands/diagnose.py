@@ -6,9 +6,10 @@ catalogue of missing physics (held out on the other passes) and writes DIR/repor
 """
 from __future__ import annotations
 
-import json
+import sys
 from pathlib import Path
 
+from maglev_ros import outputs
 from maglev_ros.errors import UserError
 
 NAME = "diagnose"
@@ -30,6 +31,7 @@ def run(args) -> int:
     for b in [*args.passes, *([args.ambient] if args.ambient else [])]:
         if not Path(b).exists():     # a one-line error before any progress line
             raise UserError(f"{b}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
+    outputs.check_dir(args.out, "--out")        # before the diagnosis, not after
     with for_cli(args.quiet, "diagnose") as progress:
         d, out = _diagnose(args, progress)
     rep = d.to_dict()
@@ -52,14 +54,20 @@ def _diagnose(args, progress):
         if ambient.kind != "ambient":
             raise UserError(f"{args.ambient}: run.kind: expected 'ambient' for --ambient, got {ambient.kind!r}")
     out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {out}: cannot create directory ({exc.strerror})") from None
+    recs = [*passes, *([ambient] if ambient is not None else [])]
+    for r in recs:
+        for line in r.health.lines():
+            print(f"maglev-ros diagnose: {line}", file=sys.stderr)
     d = diagnose(passes, ambient, progress=progress)
-    (out / "report.json").write_text(json.dumps(d.to_dict(), indent=1))
-    if not args.no_html:
-        from maglev_ros.discrepancy.report_html import render
-        progress.stage("write the HTML report")
-        (out / "report.html").write_text(render(d))
+    d.report["health"] = [r.health.to_dict() for r in recs]      # what the sensor-health check did
+    # report.json and report.html replace the earlier pair together, or neither does
+    with outputs.Batch() as batch:
+        batch.make_dir(out, "--out")
+        batch.write_json(out / "report.json", d.to_dict(), indent=1, option="--out")
+        if args.no_html:
+            batch.remove(out / "report.html")    # an earlier report's HTML would not match the JSON
+        else:
+            from maglev_ros.discrepancy.report_html import render
+            progress.stage("write the HTML report")
+            batch.write_text(out / "report.html", render(d), option="--out")
     return d, out

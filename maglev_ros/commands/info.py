@@ -7,11 +7,11 @@ an unreadable/truncated bag or a missing metadata key is one error line, exit 1.
 """
 from __future__ import annotations
 
-import json
 import sys
 
 from maglev_ros.bag_reader import BagReader
 from maglev_ros.errors import ContractError
+from maglev_ros.outputs import json_text
 
 NAME = "info"
 HELP = "show topics, channels, rates, units and contract problems of a recording"
@@ -20,7 +20,8 @@ ORDER = 10
 
 def add_arguments(p) -> None:
     p.add_argument("bag", metavar="BAG", help="rosbag2 directory, .mcap/.db3 file or ROS1 .bag")
-    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON document (strict: a non-finite number is written as null)")
     p.add_argument("--no-check", action="store_true",
                    help="skip the full contract check (only read metadata and first messages)")
 
@@ -130,7 +131,7 @@ def run(args) -> int:
     with BagReader(args.bag, strict=True) as bag:
         rep = collect(bag, check=not args.no_check)
     if args.json:
-        print(json.dumps(rep, indent=2))
+        print(json_text(rep, indent=2))      # strict JSON: a NaN/inf value prints as null
     else:
         print(format_text(rep))
     sys.stdout.flush()

@@ -10,12 +10,14 @@ maglev_ros.irregularity.profile) and both lines state what was achieved.
 """
 from __future__ import annotations
 
-import json
+import io
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from maglev_ros import outputs
 from maglev_ros.errors import ContractError, UserError
 
 NAME = "irregularity"
@@ -55,6 +57,11 @@ def _check_units(cd, topic, want, channels):
 
 def read_inputs(path: str):
     """Read the three vehicle topics and the metadata; returns a dict for InertialProfiler.fit."""
+    return read_inputs_checked(path)[0]
+
+
+def read_inputs_checked(path: str):
+    """(read_inputs' dict, the sensor-health report of what was read)."""
     from maglev_ros.bag_reader import BagReader
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
@@ -63,27 +70,31 @@ def read_inputs(path: str):
     with BagReader(path) as r:
         md = r.metadata
         _need_topics(path, r)
+        topics = (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION)
+        read, health = r.read_checked(topics, sensor_map=True)
         # samples placed at the time they describe (optional acquisition delay in the metadata)
-        accel, gap, pos = (r.read_topic(t).delayed_by(md.acquisition_delay_s(t))
-                           for t in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
-    return {"accel": accel, "gap": gap, "position": pos, **_check_inputs(path, md, accel, gap, pos)}
+        accel, gap, pos = (read[t].delayed_by(md.acquisition_delay_s(t)) for t in topics)
+    return {"accel": accel, "gap": gap, "position": pos,
+            **_check_inputs(path, md, accel, gap, pos)}, health
 
 
-def open_inputs(r, path: str, window_s: float | None = None) -> dict:
-    """The inputs of :func:`read_inputs` for the open bag ``r``, with the accelerations and gaps
+def open_inputs(r, path: str, window_s: float | None = None):
+    """(the inputs of :func:`read_inputs` for the open bag ``r``, with the accelerations and gaps
     left in the bag: ``source`` reads them window by window
-    (:func:`maglev_ros.irregularity.streamed.profile_streamed`)."""
-    from maglev_ros.bag_windows import scan_topic
+    (:func:`maglev_ros.irregularity.streamed.profile_streamed`); the sensor-health report)."""
+    from maglev_ros.bag_windows import read_checked_windows
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
     from maglev_ros.irregularity.streamed import VehicleTopics
     md = r.metadata
     _need_topics(path, r)
-    accel, gap = scan_topic(r, TOPIC_VEHICLE_ACCEL), scan_topic(r, TOPIC_VEHICLE_GAP)
-    pos = r.read_topic(TOPIC_VEHICLE_POSITION).delayed_by(md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
+    read, health = read_checked_windows(r, [TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP],
+                                        [TOPIC_VEHICLE_POSITION], sensor_map=True)
+    accel, gap = read[TOPIC_VEHICLE_ACCEL], read[TOPIC_VEHICLE_GAP]
+    pos = read[TOPIC_VEHICLE_POSITION].delayed_by(md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
     src = VehicleTopics(r, accel, gap, md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL),
                         md.acquisition_delay_s(TOPIC_VEHICLE_GAP), pos, window_s)
-    return {"source": src, **_check_inputs(path, md, accel, gap, pos)}
+    return {"source": src, **_check_inputs(path, md, accel, gap, pos)}, health
 
 
 def _need_topics(path, r) -> None:
@@ -180,13 +191,21 @@ def header_lines(res, rms, bag) -> list[str]:
     return lines
 
 
-def write_csv(path: str, res, rms, bag) -> None:
-    with open(path, "w", encoding="utf-8") as fh:
-        for line in header_lines(res, rms, bag):
-            fh.write(line.replace("\n", " ") + "\n")
-        fh.write("position_m,irregularity_m\n")
-        for x, y in zip(res.position_m, res.irregularity_m):
-            fh.write(f"{x:.4f},{'' if not math.isfinite(y) else f'{y:.6e}'}\n")
+def csv_text(res, rms, bag) -> str:
+    """The CSV: ``#`` header lines, then ``position_m,irregularity_m`` (empty where invalid)."""
+    fh = io.StringIO()
+    for line in header_lines(res, rms, bag):
+        fh.write(line.replace("\n", " ") + "\n")
+    fh.write("position_m,irregularity_m\n")
+    for x, y in zip(res.position_m, res.irregularity_m):
+        fh.write(f"{x:.4f},{'' if not math.isfinite(y) else f'{y:.6e}'}\n")
+    return fh.getvalue()
+
+
+def write_csv(path: str, res, rms, bag, batch=None) -> None:
+    """Write the CSV atomically, or stage it in ``batch`` (:class:`maglev_ros.outputs.Batch`)."""
+    with outputs.batch_or_new(batch) as b:
+        b.write_text(path, csv_text(res, rms, bag), option="--out")
 
 
 def summary_dict(res, spec, comp, rms, notes, bag) -> dict:
@@ -196,7 +215,8 @@ def summary_dict(res, spec, comp, rms, notes, bag) -> dict:
     return d
 
 
-def write_plot(path: str, res, spec, comp) -> None:
+def write_plot(path: str, res, spec, comp, batch=None) -> None:
+    """Write the PNG atomically, or stage it in ``batch`` (:class:`maglev_ros.outputs.Batch`)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -223,24 +243,37 @@ def write_plot(path: str, res, spec, comp) -> None:
     a2.set_ylabel("PSD [m^2/(cycle/m)]")
     a2.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with outputs.batch_or_new(batch) as b:
+            b.write_figure(path, fig, "--plot", dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def run(args) -> int:
     from maglev_ros.bag_reader import BagReader
+    # the outputs can be written: checked before the analysis, not after
+    outputs.check_file(args.out, "--out")
+    if args.json_out is not None:
+        outputs.check_file(args.json_out, "--json")
+    if args.plot is not None:
+        outputs.check_figure(args.plot, "--plot")
     if not Path(args.bag).exists():
         raise UserError(f"{args.bag}: no such bag")
     # accelerations and gaps stay in the bag, read window by window: memory stays bounded
     with BagReader(args.bag) as r:
-        res, spec, comp, rms, notes = analyse(open_inputs(r, args.bag), args)
-    write_csv(args.out, res, rms, args.bag)
-    if args.json_out:
-        with open(args.json_out, "w", encoding="utf-8") as fh:
-            json.dump(summary_dict(res, spec, comp, rms, notes, args.bag), fh, indent=1,
-                      allow_nan=False)
-    if args.plot:
-        write_plot(args.plot, res, spec, comp)
+        inputs, health = open_inputs(r, args.bag)
+        for line in health.lines():
+            print(f"maglev-ros irregularity: {line}", file=sys.stderr)
+        res, spec, comp, rms, notes = analyse(inputs, args)
+    # CSV, JSON and plot replace the earlier set together, or none of them does
+    with outputs.Batch() as batch:
+        write_csv(args.out, res, rms, args.bag, batch)
+        if args.json_out:
+            batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag)
+                             | {"health": health.to_dict()}, indent=1, option="--json")
+        if args.plot:
+            write_plot(args.plot, res, spec, comp, batch)
     v = res.valid
     rms_all = float(np.sqrt(np.mean(res.irregularity_m[v] ** 2))) if v.any() else float("nan")
     print(f"irregularity: valid band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m at "

@@ -15,13 +15,14 @@ stabilization diagram over the spectrum.
 """
 from __future__ import annotations
 
-import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from maglev_ros import outputs
 from maglev_ros.errors import UserError
 
 if TYPE_CHECKING:  # the science stack is imported when the verb runs, not at CLI start
@@ -76,6 +77,7 @@ class BagModes:
     result: ModalResult
     info: dict
     plan: BandPlan
+    health: Any = None        # maglev_ros.health.HealthReport of what was read
 
 
 def identify_bag(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=None,
@@ -93,6 +95,7 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
     each came from. ``scale_channels`` None: divide each channel by its std only when the
     channels' units differ."""
     from maglev_ros.bag_reader import BagReader
+    from maglev_ros.bag_windows import read_checked_windows
 
     with BagReader(path) as r:
         if TOPIC_ACCEL not in r.topics:
@@ -100,57 +103,49 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
                             f"accelerations (topics: {', '.join(sorted(r.topics)) or 'none'})")
         md = r.metadata
         kind = md.run_kind if md is not None else "ambient"
-        pos = r.read_topic(TOPIC_POSITION) if TOPIC_POSITION in r.topics else None
-        # the accelerations are read window by window while identifying: memory stays bounded
-        return _identify_streamed(path, r, md, kind, pos, fmin_hz, fmax_hz, block_rows,
-                                  max_order, decimate_to_hz, window, scale_channels)
+        # a pass places the sensors on their spans (free-decay window): that needs the sensor map;
+        # the accelerations stay in the bag, read window by window: memory stays bounded
+        read, health = read_checked_windows(
+            r, [TOPIC_ACCEL], [TOPIC_POSITION] if TOPIC_POSITION in r.topics else [],
+            sensor_map=kind == "pass")
+        out = _identify_streamed(path, r, md, kind, read[TOPIC_ACCEL], read.get(TOPIC_POSITION),
+                                 fmin_hz, fmax_hz, block_rows, max_order, decimate_to_hz, window,
+                                 scale_channels)
+    return BagModes(out.result, out.info, out.plan, health)
 
 
-def _identify_streamed(path, r, md, kind, pos, fmin_hz, fmax_hz, block_rows, max_order,
+def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows, max_order,
                        decimate_to_hz, window, scale_channels) -> BagModes:
-    """identify_modes' processing on the open bag ``r``: every pass over the accelerations reads
-    them in windows (:mod:`maglev_ros.bag_windows`), the identification sums over chunks
-    (:mod:`maglev_ros.modal.chunked`), with the whole-array path's results."""
-    from maglev_ros.bag_windows import iter_windows, scan_topic
+    """identify_modes' processing of the accelerations ``acc`` (a CheckedTopic of the open bag
+    ``r``): every pass reads them in windows (:mod:`maglev_ros.bag_windows`) and the
+    identification sums over chunks (:mod:`maglev_ros.modal.chunked`), with the whole-array
+    path's results (:func:`_identify_whole`)."""
+    from maglev_ros.bag_windows import iter_windows, read_window
     from maglev_ros.modal.bands import plan_bands
     from maglev_ros.modal.chunked import TopicChunks, identify_bands_chunked
     from maglev_ros.modal.free_decay import exit_time_s, position_window_streamed
 
-    scan = scan_topic(r, TOPIC_ACCEL)
-    fs = float(scan.sample_rate_hz)
-    channels, units = scan.channels, scan.units
+    fs = float(acc.sample_rate_hz)
+    channels, units = acc.channels, acc.units
+    n = acc.n_samples
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
     end = _span_end_m(md, channels) if md is not None else None
-    by_position = pos is not None and "position_m" in pos.channels and end is not None
-    if use_decay and not by_position:
+    if use_decay and not (pos is not None and "position_m" in pos.channels and end is not None):
         # the envelope rule needs each channel's median over the record: read it whole
-        return _identify_whole(path, r.read_topic(TOPIC_ACCEL), md, kind, pos, fmin_hz, fmax_hz,
-                               block_rows, max_order, decimate_to_hz, window, scale_channels)
-    first = next(iter_windows(r, scan)).time_s
-    t_first = float(first[0]) if first.size else 0.0
-    counted = [0]
-
-    def rel_times():
-        """Sample times after the first sample, window by window (counting the samples)."""
-        for w in iter_windows(r, scan):
-            counted[0] += w.time_s.size
-            yield w.time_s - t_first
-
-    start = 0
-    if use_decay:
-        offs = md.magnet_offsets_m or (0.0,)
-        t_exit = exit_time_s(pos.channel("position_m"), pos.time_s - t_first, end, min(offs))
-        win = position_window_streamed(rel_times(), fs, t_exit)
-        start, stop = win.start_index, win.stop_index
-    else:
-        for _ in rel_times():
-            pass
-    n = counted[0]
-    stop = stop if use_decay else n
+        cd = read_window(r, acc, -np.inf, np.inf)
+        return _identify_whole(path, cd, md, kind, pos, fmin_hz, fmax_hz, block_rows, max_order,
+                               decimate_to_hz, window, scale_channels)
     info = {"bag": str(path), "topic": TOPIC_ACCEL, "run_kind": kind, "fs_hz": fs,
             "n_samples": int(n), "channels": list(channels)}
+    start, stop = 0, n
     if use_decay:
+        t_first = acc.first_time_s
+        t_exit = exit_time_s(pos.channel("position_m"), pos.time_s - t_first, end,
+                             min(md.magnet_offsets_m or (0.0,)))
+        win = position_window_streamed((w.time_s - t_first for w in iter_windows(r, acc)), fs,
+                                       t_exit)
         info["free_decay_window"] = win.to_dict()
+        start, stop = win.start_index, win.stop_index
     if scale_channels is None:
         # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
         # mixed units have no common scale, so each channel is brought to unit std
@@ -168,14 +163,14 @@ def _identify_streamed(path, r, md, kind, pos, fmin_hz, fmax_hz, block_rows, max
     except UserError as e:
         raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
-    res, _ = identify_bands_chunked(TopicChunks(r, scan, n, start, stop), fs, plan, channels)
+    res, _ = identify_bands_chunked(TopicChunks(r, acc, start, stop), fs, plan, channels)
     return BagModes(res, info, plan)
 
 
 def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_rows=None,
                     max_order=None, decimate_to_hz=None, window="auto",
                     scale_channels=None) -> BagModes:
-    """identify_modes on the whole topic ``cd`` in memory."""
+    """identify_modes on the whole topic ``cd`` in memory (as read, health-checked)."""
     from maglev_ros.modal.bands import identify_bands, plan_bands
     from maglev_ros.modal.free_decay import select_free_decay
 
@@ -222,10 +217,17 @@ def run(args) -> int:
     bag = Path(args.bag)
     if not bag.exists():
         raise UserError(f"{bag}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
+    # the outputs can be written: checked before the identification, not after
+    if args.json is not None:
+        outputs.check_file(args.json, "--json")
+    if args.plot is not None:
+        outputs.check_figure(args.plot, "--plot")
     out = identify_modes(bag, args.fmin_hz, args.fmax_hz, args.block_rows, args.max_order,
                          args.decimate_to_hz, args.window,
                          {"auto": None, "yes": True, "no": False}[args.scale_channels])
     res, info, plan = out.result, out.info, out.plan
+    for line in out.health.lines():
+        print(f"maglev-ros modes: {line}", file=sys.stderr)
     print(f"{bag}: {info['run_kind']} recording, {len(info['channels'])} channels at "
           f"{info['fs_hz']:g} Hz, {info['n_samples'] / info['fs_hz']:.4g} s")
     if "free_decay_window" in info:
@@ -241,12 +243,15 @@ def run(args) -> int:
               f"{100 * sz:6.3f} {m.mpc:6.3f}")
     if not res.modes:
         print("no stable modes found")
-    if args.json:
-        doc = res.to_dict()
-        doc["source"] = info
-        Path(args.json).write_text(json.dumps(doc, indent=1))
-    if args.plot:
-        from maglev_ros.modal.plot import save_stabilization_diagram
-        save_stabilization_diagram(res, args.plot, title=f"{bag.name}: {info['run_kind']}",
-                                   freq_range_hz=(plan.fmin_hz, plan.fmax_hz))
+    with outputs.Batch() as batch:          # the JSON and the plot replace the earlier pair together
+        if args.json:
+            doc = res.to_dict()
+            doc["source"] = info
+            doc["health"] = out.health.to_dict()
+            batch.write_json(args.json, doc, indent=1, option="--json")
+        if args.plot:
+            from maglev_ros.modal.plot import save_stabilization_diagram
+            save_stabilization_diagram(res, args.plot, title=f"{bag.name}: {info['run_kind']}",
+                                       freq_range_hz=(plan.fmin_hz, plan.fmax_hz), batch=batch,
+                                       option="--plot")
     return 0

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 
+from maglev_ros.errors import UserError
+
 NAME = "simulate"
 HELP = "simulate a test-line recording (vehicle pass or ambient) from a scenario into a contract bag"
 ORDER = 40
@@ -30,8 +32,14 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    from maglev_ros import outputs
     from maglev_ros.progress import for_cli
-    from maglev_ros.twin.simulate import simulate
+    from maglev_ros.twin.simulate import simulate, truth_paths
+    # the bag and its sidecars can be written: checked before the simulation, not after
+    outputs.check_parent(args.out, "--out")
+    for sidecar in truth_paths(args.out):
+        if sidecar.is_dir():
+            raise UserError(f"--out {args.out}: {sidecar} is a directory; expected none or a file")
     with for_cli(args.quiet, "simulate") as progress:
         res = simulate(args.scenario, args.out, sets=args.sets, seed=args.seed, overwrite=args.overwrite,
                        storage=args.storage, progress=progress)

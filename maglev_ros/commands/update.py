@@ -8,10 +8,10 @@ ka) from the passes' magnet accelerations with the updated guideway. Writes the 
 """
 from __future__ import annotations
 
-import json
-import os
+import sys
 from pathlib import Path
 
+from maglev_ros import outputs
 from maglev_ros.errors import UserError
 
 NAME = "update"
@@ -41,18 +41,12 @@ def add_arguments(p) -> None:
                    help="no progress on stderr (stage, count, ETA) and no summary table on stdout")
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write via a temporary file and rename: a crash never leaves a half-written JSON."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def run(args) -> int:
     from maglev_ros.updating.guideway_layer import GuidewayLayer
     from maglev_ros.updating.magnet_layer import MagnetLayer
     from maglev_ros.progress import for_cli
     from maglev_ros.updating.pipeline import update_from_bags
+    from maglev_ros.health import report_lines
 
     for b in [args.ambient, *args.passes]:
         if not Path(b).exists():
@@ -70,21 +64,32 @@ def run(args) -> int:
         sw = {"n_particles": args.swarm[0], "n_iterations": args.swarm[1]}
     out = Path(args.out)
     # check the outputs before minutes of computation, not after
-    for path, what in ((out.parent, "--out"), (Path(args.details).parent if args.details else None, "--details")):
-        if path is not None and str(path) and not path.is_dir():
-            raise UserError(f"{what}: directory {path} does not exist")
+    outputs.check_file(out, "--out")
+    if args.details:
+        outputs.check_file(args.details, "--details")
+    if args.plot:
+        outputs.check_dir(args.plot, "--plot")
     with for_cli(args.quiet, "update") as progress:
         # the pipeline's messages go to stderr with the progress: stdout stays the result
         up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
                               guideway_layer=GuidewayLayer(seed=args.seed, **sw),
                               magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
                                                        seed=args.seed, **sw), progress=progress)
-        _write_atomic(out, json.dumps(up.document, indent=1))
-        if args.plot:
-            from maglev_ros.updating.plot import save_update_plots
-            progress.stage("plots")
-            plots = save_update_plots(up, args.plot)
-    doc = up.document
+        for h in up.provenance["health"]:
+            for line in report_lines(h):
+                print(f"maglev-ros update: {line}", file=sys.stderr)
+        doc = up.document
+        # parameters, plots and details replace the earlier set together, or none of them does
+        with outputs.Batch() as batch:
+            batch.write_json(out, doc, indent=1, option="--out")
+            if args.plot:
+                from maglev_ros.updating.plot import save_update_plots
+                progress.stage("plots")
+                plots = save_update_plots(up, args.plot, batch)
+            if args.details:
+                det = {"document": doc, "guideway": up.guideway.to_dict(),
+                       "magnet": None if up.magnet is None else up.magnet.to_dict(), "provenance": up.provenance}
+                batch.write_json(args.details, det, indent=1, default=float, option="--details")
     if not args.quiet:
         fm, fn, fu = (doc["frequencies_hz"][k] for k in ("measured", "nominal", "updated"))
         print(f"{'mode':>4s} {'meas Hz':>9s} {'nominal':>9s} {'updated':>9s}")
@@ -97,10 +102,6 @@ def run(args) -> int:
             e = doc["magnet_accel_nrmse"]
             print(f"magnet acceleration NRMSE: nominal {e['nominal']:.3f} -> updated {e['updated']:.3f}")
         print(f"wrote {out}")
-    if args.details:
-        det = {"document": doc, "guideway": up.guideway.to_dict(),
-               "magnet": None if up.magnet is None else up.magnet.to_dict(), "provenance": up.provenance}
-        Path(args.details).write_text(json.dumps(det, indent=1, default=float))
     if args.plot and not args.quiet:
         for p in plots:
             print(f"wrote {p}")

@@ -7,9 +7,9 @@ and, where the recording has the optional car-body topic (docs/contract-extensio
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import PurePath
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -61,6 +61,7 @@ class Recording:
     irregularity_margin_m: float = 0.0
     sensor_delay_s: float = 0.0
     irregularity_info: Mapping | None = None
+    health: Any = None                    # maglev_ros.health.HealthReport of the bag it was read from
 
     @property
     def name(self) -> str:
@@ -122,13 +123,14 @@ def load_recording(path) -> Recording:
         md = dict(bag.metadata.raw)
         signals = {}
         position = None
-        for topic in bag.topics:
+        # the sensor-health check: SI units, bad channels left out where safe, else one error
+        read, health = bag.read_checked([t for t in bag.topics if t in TOPIC_GROUP
+                                         or t == "/testline/vehicle/position"], sensor_map=True)
+        for topic, cd in read.items():
             if topic in TOPIC_GROUP:
-                cd = bag.read_topic(topic)
                 for i, ch in enumerate(cd.channels):
                     signals[ch] = (cd.time_s, cd.data[:, i])
-            elif topic == "/testline/vehicle/position":
-                cd = bag.read_topic(topic)
+            else:
                 if "position_m" not in cd.channels:
                     raise ContractError(f"{path}: /testline/vehicle/position: channel 'position_m' missing")
                 pos = cd.channel("position_m")
@@ -137,7 +139,7 @@ def load_recording(path) -> Recording:
     rec = recording_from_arrays(md, signals, position, source=str(path))
     if rec.kind == "pass" and rec.position_time_s is None:
         raise ContractError(f"{path}: /testline/vehicle/position: a pass recording needs the vehicle position")
-    return rec
+    return replace(rec, health=health)
 
 
 def require_pass(rec: Recording, what: str = "--pass") -> None:

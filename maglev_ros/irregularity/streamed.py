@@ -235,10 +235,11 @@ EDGE_EPS_S = 1e-3            # raw read range beyond a delayed window (ulps of s
 
 @dataclass
 class VehicleTopics:
-    """The vehicle topics of an open bag: accel and gap read in windows (``scan`` of each,
-    acquisition delays), the position whole (small: 2 channels at 50-1000 Hz), delayed."""
+    """The vehicle topics of an open bag: accel and gap read in windows (each a
+    ``bag_windows.CheckedTopic``; acquisition delays), the position whole (small: 2 channels at
+    50-1000 Hz), delayed."""
     reader: object
-    accel: object                      # bag_windows.TopicScan
+    accel: object
     gap: object
     accel_delay_s: float
     gap_delay_s: float
@@ -407,17 +408,15 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
     """:meth:`InertialProfiler.fit` (no deflection) of the recording ``src``, read window by
     window (see the module docstring); a recording within one window is read whole and fitted
     by the batch code."""
-    from maglev_ros.bag_windows import window_edges
-    from maglev_ros.contract import TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP
+    from maglev_ros.bag_windows import read_window, window_edges
     cfg = profiler
     stream = _Stream(src, cfg, None)
     acc_ns = SimpleNamespace(channels=src.accel.channels)
     gap_ns = SimpleNamespace(channels=src.gap.channels)
     specs = cfg._specs(acc_ns, gap_ns, magnet_offsets_m, channel_pairs)
     if len(window_edges(src.accel, stream.window_s)) == 1:
-        r = src.reader
-        accel = r.read_topic(TOPIC_VEHICLE_ACCEL).delayed_by(src.accel_delay_s)
-        gap = r.read_topic(TOPIC_VEHICLE_GAP).delayed_by(src.gap_delay_s)
+        accel, gap = (read_window(src.reader, t, -math.inf, math.inf).delayed_by(d)
+                      for t, d in ((src.accel, src.accel_delay_s), (src.gap, src.gap_delay_s)))
         return cfg.fit(accel, gap, src.position, magnet_offsets_m, nominal_gap_m, None,
                        channel_pairs)
     stream.setup = setup = _setup(src, stream)

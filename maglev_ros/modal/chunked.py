@@ -66,30 +66,29 @@ class ArrayChunks:
 
 
 class TopicChunks:
-    """Samples ``start_index .. stop_index - 1`` of a bag topic (columns ``columns``, default all)
-    as float64 chunks, read window by window (:mod:`maglev_ros.bag_windows`); re-iterable while
-    ``reader`` is open. The chunks concatenated are ``read_topic(topic).data[start:stop]``."""
+    """Samples ``start_index .. stop_index - 1`` of a bag topic (``src``: a
+    :class:`~maglev_ros.bag_windows.CheckedTopic` or ``TopicSpan`` with ``n_samples``) as float64
+    chunks, read window by window (:mod:`maglev_ros.bag_windows`); re-iterable while ``reader``
+    is open. The chunks concatenated are the whole read's ``data[start:stop]``."""
 
-    def __init__(self, reader, scan, n_samples: int, start_index: int = 0,
-                 stop_index: int | None = None, columns=None, window_s: float | None = None):
-        self.reader, self.scan = reader, scan
+    def __init__(self, reader, src, start_index: int = 0, stop_index: int | None = None,
+                 window_s: float | None = None):
+        self.reader, self.src = reader, src
         self.start = int(start_index)
-        self.stop = int(n_samples if stop_index is None else stop_index)
+        self.stop = int(src.n_samples if stop_index is None else stop_index)
         self.n_samples = self.stop - self.start
-        self.columns = None if columns is None else list(columns)
-        self.n_channels = len(scan.channels if columns is None else self.columns)
+        self.n_channels = len(src.channels)
         self.window_s = window_s
 
     def __iter__(self):
         from maglev_ros.bag_windows import iter_windows
         pos = 0
-        for w in iter_windows(self.reader, self.scan, self.window_s):
+        for w in iter_windows(self.reader, self.src, self.window_s):
             n = w.data.shape[0]
             lo, hi = max(self.start - pos, 0), min(self.stop - pos, n)
             pos += n
             if hi > lo:
-                d = w.data[lo:hi]
-                yield d if self.columns is None else d[:, self.columns]
+                yield w.data[lo:hi]
             if pos >= self.stop:
                 return
 

@@ -62,8 +62,15 @@ def stabilization_figure(result: ModalResult, title: str = "", freq_range_hz=Non
     return fig
 
 
-def save_stabilization_diagram(result: ModalResult, path, title: str = "", freq_range_hz=None):
+def save_stabilization_diagram(result: ModalResult, path, title: str = "", freq_range_hz=None,
+                               batch=None, option: str | None = None):
+    """Write the diagram to ``path`` atomically, or stage it in ``batch``
+    (:class:`maglev_ros.outputs.Batch`) to be renamed with the other outputs."""
     import matplotlib.pyplot as plt
+    from maglev_ros.outputs import batch_or_new
     fig = stabilization_figure(result, title, freq_range_hz)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        with batch_or_new(batch) as b:
+            b.write_figure(path, fig, option, dpi=120)
+    finally:
+        plt.close(fig)

@@ -13,19 +13,36 @@ Parameters (see the core's docstring): ``threshold`` (10, residual power / noise
 ``merge_gap_s`` (1, runs closer than this are one incident), ``allowance_factor`` (4, x the learned
 peak residual of earlier passes), ``learn_rate`` (0.1), ``learn_rate_reported`` (1),
 ``rel_allowance`` (0.1, tolerated residual / measured amplitude; 0 = off), ``measured_topics``.
+
+The diagnosis (``live_diagnosis``, default true): the measured streams, the position and the
+metadata are assembled into recordings (:mod:`maglev_ros.discrepancy.live`); when one ends (new
+metadata, or no data for ``recording_idle_s`` = 2 s of wall time) an ambient recording is kept and a
+pass is diagnosed in the background with the ambient and the last ``max_passes`` (2) passes by the
+same stages as ``maglev-ros diagnose`` (same recordings, same report). Each missing-physics entry and
+located mismatch goes out as a MismatchReport (effect, category, explanation filled; the entry in
+``detail_json``) and the whole report (schema maglev-diagnosis/1) on /maglev/diagnosis
+(std_msgs/String, latched). ``n_top`` and ``fit_every_effect``: the diagnosis' settings (defaults
+as ``maglev-ros diagnose``; fewer hypotheses for a quicker answer).
 """
 from __future__ import annotations
 
+import json
+import math
 import sys
+import threading
+import time
 
 from rclpy.node import Node
+from std_msgs.msg import String
 
 from maglev_msgs.msg import MismatchReport, SensorBlock
-from maglev_ros.contract import DATA_TOPICS, TOPIC_VEHICLE_POSITION
+from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.discrepancy.online import OnlineDetector
-from maglev_ros.nodes._common import QOS_STREAM, block_from_msg, run_node, stamp_to_msg
+from maglev_ros.errors import ContractError
+from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node, stamp_to_msg
 
 TOPIC_MISMATCH = "/maglev/mismatch"
+TOPIC_DIAGNOSIS = "/maglev/diagnosis"
 RESIDUAL_PREFIX = "/maglev/twin/residual/"
 # the measured streams the twin's residual groups are computed from
 MEASURED_TOPICS = tuple(t for t in DATA_TOPICS if t != TOPIC_VEHICLE_POSITION)
@@ -43,13 +60,32 @@ class DiscrepancyNode(Node):
             learn_rate=num("learn_rate", 0.1), learn_rate_reported=num("learn_rate_reported", 1.0),
             rel_allowance=num("rel_allowance", 0.1))
         measured = list(self.declare_parameter("measured_topics", list(MEASURED_TOPICS)).value or [])
+        self.live = bool(self.declare_parameter("live_diagnosis", True).value)
+        self.idle_s = num("recording_idle_s", 2.0)
         self.pub = self.create_publisher(MismatchReport, TOPIC_MISMATCH, QOS_STREAM)
+        self.pub_diag = self.create_publisher(String, TOPIC_DIAGNOSIS, QOS_LATCHED)
         self.subs = {}
         self.create_subscription(SensorBlock, "/testline/vehicle/position", self._on_position, QOS_STREAM)
-        if self.detector.rel_allowance > 0:
+        if self.detector.rel_allowance > 0 or self.live:
             for topic in measured:
                 if topic:
-                    self.create_subscription(SensorBlock, topic, self._on_measured, QOS_STREAM)
+                    self.create_subscription(SensorBlock, topic, lambda m, t=topic: self._on_measured(t, m),
+                                             QOS_STREAM)
+        self.assembler = self.diagnoser = None
+        if self.live:
+            from maglev_ros.discrepancy.live import LiveDiagnoser, RecordingAssembler
+            self.assembler = RecordingAssembler(source=self.get_fully_qualified_name())
+            from maglev_ros.discrepancy.diagnose import DiagnoseConfig
+            cfg = DiagnoseConfig(n_top=int(self.declare_parameter("n_top", DiagnoseConfig.n_top).value),
+                                 fit_every_effect=bool(self.declare_parameter(
+                                     "fit_every_effect", DiagnoseConfig.fit_every_effect).value))
+            self.diagnoser = LiveDiagnoser(cfg, max_passes=int(self.declare_parameter("max_passes", 2).value))
+            self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
+            self._lock = threading.Lock()           # the assembler is fed by callbacks, emptied by the timer
+            self._last_data = None
+            self._worker = None
+            self._queue = []
+            self.create_timer(0.5, self._check_idle)
         self.create_timer(0.5, self._discover)
         self._discover()
 
@@ -62,9 +98,87 @@ class DiscrepancyNode(Node):
         b = block_from_msg(msg)
         if "position_m" in b.channels:
             self.detector.add_position(b.times_s(), b.data[:, b.channels.index("position_m")])
+        self._collect(TOPIC_VEHICLE_POSITION, b)
 
-    def _on_measured(self, msg) -> None:
-        self.detector.add_measured_block(block_from_msg(msg))
+    def _on_measured(self, topic, msg) -> None:
+        b = block_from_msg(msg)
+        if self.detector.rel_allowance > 0:
+            self.detector.add_measured_block(b)
+        self._collect(topic, b)
+
+    # --- the diagnosis of whole recordings (same stages as `maglev-ros diagnose`)
+    def _collect(self, topic, block) -> None:
+        if self.assembler is None:
+            return
+        with self._lock:
+            self.assembler.add_block(topic, block)
+            self._last_data = time.monotonic()
+
+    def _on_metadata(self, msg) -> None:
+        try:
+            md = parse_metadata(msg.data, TOPIC_METADATA).raw
+        except ContractError as exc:
+            self.get_logger().error(f"{exc}; recordings are not diagnosed")
+            return
+        with self._lock:
+            done = self._finished(lambda: self.assembler.set_metadata(md))
+        if done is not None:
+            self._submit(done)
+
+    def _check_idle(self) -> None:
+        with self._lock:
+            idle = self._last_data is not None and time.monotonic() - self._last_data > self.idle_s
+            done = self._finished(self.assembler.finish) if idle else None
+            if idle:
+                self._last_data = None
+        if done is not None:
+            self._submit(done)
+
+    def _finished(self, step):
+        try:
+            return step()
+        except ContractError as exc:     # a recording that cannot be diagnosed must not end the node
+            self.get_logger().error(f"recording not diagnosed: {exc}")
+            return None
+
+    def _submit(self, rec) -> None:
+        self._queue.append(rec)
+        if self._worker is None or not self._worker.is_alive():
+            self._worker = threading.Thread(target=self._diagnose_queue, daemon=True)
+            self._worker.start()
+
+    def _diagnose_queue(self) -> None:
+        while self._queue:
+            rec = self._queue.pop(0)
+            self.get_logger().info(f"recording complete ({rec.kind}, {rec.t1_s - rec.t0_s:.1f} s)"
+                                   + (": diagnosing" if rec.kind == "pass" else ": kept as the ambient recording"))
+            try:
+                d = self.diagnoser.add_recording(rec)
+            except Exception as exc:      # a recording the diagnosis refuses must not end the node
+                self.get_logger().error(f"diagnosis failed: {exc}")
+                continue
+            if d is not None:
+                self._publish_diagnosis(d.to_dict())
+
+    def _publish_diagnosis(self, rep) -> None:
+        from maglev_ros.discrepancy.live import diagnosis_events
+        self.pub_diag.publish(String(data=json.dumps(rep, default=_json_default)))
+        for ev in diagnosis_events(rep):
+            out = MismatchReport()
+            stamp_to_msg(self.get_clock().now().nanoseconds, out.header)
+            out.header.frame_id = "testline"
+            out.channels = [str(c) for c in ev["channels"]]
+            out.t0_s, out.t1_s = (float(x) for x in ev["time_s"])
+            out.position_start_m, out.position_end_m = (float(x) for x in ev["position_m"])
+            out.f0_hz, out.f1_hz = (float(x) for x in ev["frequency_hz"])
+            out.severity = float(ev["severity"])
+            out.effect, out.category, out.explanation = ev["effect"], ev["category"], ev["explanation"]
+            out.detail_json = json.dumps(ev["detail"], default=_json_default)
+            self.pub.publish(out)
+        n = len(rep.get("missing_physics", []))
+        self.get_logger().info(f"diagnosis: fit {rep['fit_before']['nrmse']:.3f} -> {rep['fit_after']['nrmse']:.3f}; "
+                               f"missing physics: {', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}"
+                               f" ({n} entr{'y' if n == 1 else 'ies'})")
 
     def _on_residual(self, msg) -> None:
         for ev in self.detector.add_block(block_from_msg(msg)):
@@ -92,6 +206,11 @@ class DiscrepancyNode(Node):
         except Exception as exc:  # never block the shutdown
             self.get_logger().warning(f"flush on shutdown failed: {exc}")
         return super().destroy_node()
+
+
+def _json_default(x):
+    f = float(x)
+    return None if not math.isfinite(f) else f
 
 
 def main(args=None) -> int:

@@ -4,7 +4,8 @@ Subscribes /testline/metadata (latched), /maglev/modes (ModalEstimate),
 /maglev/twin/residual/vehicle_accel (SensorBlock) and, for the magnet layer's twin input,
 /testline/vehicle/{accel,gap,position}. Publishes /maglev/twin/parameters (TwinParameters,
 latched) after each accepted update; each accepted update is stored in the parameter history
-(parameter ``history_path``, JSON lines, atomic; unset: memory only), tagged with the line (a hash
+(parameter ``history_path``, append-only JSON lines, one writer: a second updater on the same file
+is refused at start; unset: memory only), tagged with the line (a hash
 of the metadata's line and design blocks). When the metadata arrives, the last record of THAT line
 is republished, so a restarted node (and a late twin) get the current parameters; records of
 another line are never loaded, and the log says what was loaded and from where.
@@ -64,12 +65,19 @@ class UpdaterNode(Node):
         self.line: str | None = None      # line key of the metadata the history was restored for
         if self.core.history.path is None:
             self.get_logger().warning("history_path not set: accepted parameters are kept in memory only")
+        else:   # the one writer of this file from now on (a second updater is refused here, one line)
+            for w in self.core.history.open_writer():
+                self.get_logger().warning(w)
+        self.n_warned = 0
 
     def _drain_log(self) -> None:
         """Print the core's new log lines (call with the lock held)."""
         for line in self.core.log[self.n_logged:]:
             self.get_logger().info(line)
         self.n_logged = len(self.core.log)
+        for line in self.core.warnings[self.n_warned:]:
+            self.get_logger().warning(line)
+        self.n_warned = len(self.core.warnings)
 
     def _publish(self, pub) -> None:
         m = TwinParameters()
@@ -100,6 +108,8 @@ class UpdaterNode(Node):
             self.get_logger().error(f"/testline/metadata: {exc}")
             return
         self.get_logger().info(restored.message)
+        for w in restored.warnings:
+            self.get_logger().warning(w)
         if restored.publication is not None:
             self._publish(restored.publication)
 

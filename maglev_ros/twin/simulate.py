@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import json
 import math
 from dataclasses import dataclass, field
@@ -54,6 +55,7 @@ import numpy as np
 import yaml
 from scipy import signal
 
+from maglev_ros import outputs
 from maglev_ros.contract import (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL,
                                  TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION, CONTRACT_SCHEMA)
 from maglev_ros.errors import UserError
@@ -855,24 +857,31 @@ def write_record(rec: SimulatedRecord, out: str | Path, *, start_stamp_ns: int, 
                                                      tuple(s["units"]), np.ascontiguousarray(data[b0:b0 + nb]))))
     items.sort(key=lambda it: (it[0], it[1]))
     counts: dict[str, int] = {}
-    with BagWriter(out, rec.metadata, storage=storage, overwrite=overwrite) as w:
-        for _stamp, _o, topic, blk in items:
-            w.write_block(topic, blk)
-            counts[topic] = counts.get(topic, 0) + 1
     truth = dict(rec.truth)
     truth["bag"] = out.name
     truth["start_stamp_ns"] = int(start_stamp_ns)
-    if rec.irregularity is not None:
-        x, r = rec.irregularity
-        with open(irr_csv, "w", newline="") as f:
-            wr = csv.writer(f)
-            wr.writerow(["position_m", "elevation_m"])
-            for xi, ri in zip(x, r):
-                wr.writerow([f"{xi:.6f}", f"{ri:.9e}"])
-        truth["irregularity_csv"] = irr_csv.name
-    elif irr_csv.exists():
-        irr_csv.unlink()
-    truth_json.write_text(json.dumps(truth, indent=1, default=float))
+    # the sidecars are staged before the bag is finished and renamed after it: a failure anywhere
+    # leaves neither a bag without its truth nor a partial bag (a rerun is not refused)
+    try:
+        with outputs.Batch() as batch, BagWriter(out, rec.metadata, storage=storage,
+                                                  overwrite=overwrite) as w:
+            for _stamp, _o, topic, blk in items:
+                w.write_block(topic, blk)
+                counts[topic] = counts.get(topic, 0) + 1
+            if rec.irregularity is not None:
+                x, r = rec.irregularity
+                f = io.StringIO(newline="")
+                wr = csv.writer(f)
+                wr.writerow(["position_m", "elevation_m"])
+                for xi, ri in zip(x, r):
+                    wr.writerow([f"{xi:.6f}", f"{ri:.9e}"])
+                batch.write_text(irr_csv, f.getvalue())
+                truth["irregularity_csv"] = irr_csv.name
+            else:
+                batch.remove(irr_csv)
+            batch.write_json(truth_json, truth, indent=1, default=float)
+    except OSError as exc:
+        raise UserError(f"{out}: cannot write the bag ({exc.strerror or exc})") from None
     return counts
 
 

@@ -31,6 +31,9 @@ Decisions (choices; the paper updates offline):
   before the twin adopted the update, the twin lags the stream) are not judged.
 - Restart: ``restore()`` (after the metadata) returns the last accepted record of this line in the
   history (republished as is); records of another line are never loaded, and the message says so.
+- Storing: an update is accepted only once the history stored it; one the history refuses (a
+  non-finite parameter value, another writer, a failed write) is not adopted and goes to
+  ``warnings`` with the reason, as do damaged history lines (which the node logs as warnings).
 
 Published parameter names are the twin's dotted design paths (``guideway.youngs_modulus_pa``,
 ``levitation.kp_a_per_m``) that ``twin.online.OnlineTwin.set_parameters`` adopts.
@@ -85,6 +88,7 @@ class Restored:
     """What ``restore`` found: the publication to republish (None: start from the design) and why."""
     publication: Publication | None
     message: str
+    warnings: tuple[str, ...] = ()     # damaged history lines (skipped, set aside) to log
 
 
 def publication_from_record(rec: Mapping) -> Publication:
@@ -123,6 +127,7 @@ class OnlineUpdater:
         self._buf: dict[str, list] = {TOPIC_VEHICLE_ACCEL: [], TOPIC_VEHICLE_GAP: [], TOPIC_VEHICLE_POSITION: []}
         self._res: list = []
         self.log: list[str] = []
+        self.warnings: list[str] = []               # refused records, damaged history lines: the node warns
 
     # ------------------------------------------------------------------ state
     @property
@@ -139,6 +144,7 @@ class OnlineUpdater:
             raise UserError("/testline/metadata: not received yet; the parameter history is per line")
         where = "memory only" if self.history.path is None else str(self.history.path)
         recs = self.history.records()
+        warnings = tuple(self.history.take_warnings())
         key = line_key(self.md.raw)
         mine = [r for r in recs if r.get("line") == key]
         others = len(recs) - len(mine)
@@ -147,7 +153,7 @@ class OnlineUpdater:
         if not mine:
             self.current, self._revision, self._last_freqs = {}, 0, None
             return Restored(None, f"parameter history {where}: nothing for this line yet (line "
-                                  f"{key}), starting from the design{other_note}")
+                                  f"{key}), starting from the design{other_note}", warnings)
         rec = mine[-1]
         self.current = {n: dict(v) for n, v in rec["parameters"].items()}
         self._revision = int(rec["revision"])
@@ -156,7 +162,7 @@ class OnlineUpdater:
         src = (rec.get("data_used") or {}).get("recording") or "an earlier run"
         return Restored(publication_from_record(rec),
                         f"parameter history {where}: continuing from revision {rec['revision']} of this "
-                        f"line (line {key}, from {src}){other_note}")
+                        f"line (line {key}, from {src}){other_note}", warnings)
 
     def set_metadata(self, metadata: Mapping | Metadata) -> None:
         self.md = metadata if isinstance(metadata, Metadata) else metadata_from_dict(dict(metadata), "/testline/metadata")
@@ -170,12 +176,18 @@ class OnlineUpdater:
         m = {n: self.current[n]["value"] for n in MAGNET_PARAMS if n in self.current}
         return with_levitation(with_guideway(self.nominal, **g), **m)
 
-    def _accept(self, params: dict, data_used: dict, fit: dict) -> Publication:
+    def _accept(self, params: dict, data_used: dict, fit: dict) -> Publication | None:
         merged = {**self.current, **params}
         line = line_key(self.md.raw) if self.md is not None else None
         if self.md is not None:     # which recording the update came from, for the restart message
             data_used = {**data_used, "recording": (self.md.description or "unnamed recording")[:120]}
-        rec = self.history.append(merged, data_used, fit, line=line)
+        try:
+            rec = self.history.append(merged, data_used, fit, line=line)
+        except UserError as exc:                # not stored = not accepted: the twin keeps the current set
+            self.warnings.extend(self.history.take_warnings())
+            self.warnings.append(f"update refused: {exc}")
+            return None
+        self.warnings.extend(self.history.take_warnings())
         self.current = merged
         self._revision = int(rec["revision"])
         return publication_from_record(rec)
@@ -443,5 +455,7 @@ class OnlineUpdater:
         fit = {"layer": "magnet", "nrmse_before": up.nrmse_nominal, "nrmse_after": up.nrmse_updated,
                "combinations": [c.to_dict() for c in up.identifiability.combinations if c.identifiable],
                "uncertainty": up.uncertainty, "n_model_evaluations": up.n_model_evaluations}
-        self.log.append(f"magnet update accepted: NRMSE {up.nrmse_nominal:.3f} -> {up.nrmse_updated:.3f}")
-        return self._accept(params, result["data_used"], fit)
+        pub = self._accept(params, result["data_used"], fit)
+        if pub is not None:
+            self.log.append(f"magnet update accepted: NRMSE {up.nrmse_nominal:.3f} -> {up.nrmse_updated:.3f}")
+        return pub

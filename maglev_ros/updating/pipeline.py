@@ -207,14 +207,15 @@ def identify_ambient(path: str | Path, fmax_hz: float | None = None, block_rows:
             raise UserError(f"{path}: metadata run.kind is {md.run_kind!r}; --ambient expects an ambient recording")
         if TOPIC_GUIDEWAY_ACCEL not in r.topics:
             raise UserError(f"{path}: topic {TOPIC_GUIDEWAY_ACCEL} not in bag (topics: {', '.join(sorted(r.topics)) or 'none'})")
-        cd = r.read_topic(TOPIC_GUIDEWAY_ACCEL)
+        read, health = r.read_checked(TOPIC_GUIDEWAY_ACCEL, sensor_map=True)
+        cd = read[TOPIC_GUIDEWAY_ACCEL]
     fs = float(cd.sample_rate_hz)
     fmax = min(0.4 * fs, 250.0) if fmax_hz is None else float(fmax_hz)
     est = SSICov(block_rows=block_rows, orders=range(2, max_order + 1, 2),
                  decimate_to_hz=3.3 * fmax if fs > 4.0 * fmax else None, freq_range_hz=(1.0, fmax))
     res = est.fit(np.asarray(cd.data, float), fs, cd.channels)
     return md, res, {"bag": str(path), "fs_hz": fs, "fmax_hz": fmax, "duration_s": float(cd.time_s[-1] - cd.time_s[0]),
-                     "channels": list(cd.channels)}
+                     "channels": list(cd.channels), "health": health.to_dict()}
 
 
 # ---------------------------------------------------------------------------------------- passes
@@ -369,8 +370,13 @@ def read_pass(path: str | Path, config: TwinConfig | None = None) -> PassRecordi
             if tp not in r.topics:
                 raise UserError(f"{path}: topic {tp} not in bag; the magnet layer needs magnet accelerations, gaps "
                                 f"and the vehicle position")
-        acc, gap, pos = (r.read_topic(tp) for tp in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
-        disp = r.read_topic(TOPIC_GUIDEWAY_DISP) if TOPIC_GUIDEWAY_DISP in r.topics else None
+        read, health = r.read_checked([TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION]
+                                      + ([TOPIC_GUIDEWAY_DISP] if TOPIC_GUIDEWAY_DISP in r.topics else []),
+                                      sensor_map=True)
+        acc, gap, pos = (read[tp] for tp in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION))
+        disp = read.get(TOPIC_GUIDEWAY_DISP)
+        if disp is not None and not disp.channels:      # every displacement channel left out
+            disp = None
     cfg = config if config is not None else twin_config_from_metadata(md.raw)
     for ch in ("position_m", "speed_mps"):
         if ch not in pos.channels:
@@ -385,7 +391,8 @@ def read_pass(path: str | Path, config: TwinConfig | None = None) -> PassRecordi
     sens = md.sensors
     t0 = float(acc.time_s[0])
     info = {"bag": str(path), "magnets": mags, "fs_hz": float(acc.sample_rate_hz),
-            "duration_s": float(acc.time_s[-1] - t0), "channel_pairs": {m: list(pairs[m]) for m in mags}}
+            "duration_s": float(acc.time_s[-1] - t0), "channel_pairs": {m: list(pairs[m]) for m in mags},
+            "health": health.to_dict()}
     static = None
     if disp is not None:
         try:
@@ -521,5 +528,7 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
                                                 "wall_time_s": mag.wall_time_s, "uncertainty": mag.uncertainty,
                                                 "surrogate_score": mag.surrogate_score,
                                                 "nrmse_fit": {"nominal": mag.nrmse_nominal, "updated": mag.nrmse_updated}},
-            "wall_time_s": time.perf_counter() - t_start}
+            "wall_time_s": time.perf_counter() - t_start,
+            # the sensor-health check of every bag (maglev-params/1 itself has a fixed key set)
+            "health": [amb_info["health"], *(r.info["health"] for r in recs)]}
     return TwoLayerUpdate(gw, mag, doc, prov, cfg0, cfg_up, modal_res, series)

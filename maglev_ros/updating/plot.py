@@ -15,12 +15,18 @@ def _plt():
     return plt
 
 
-def save_update_plots(up, out_dir) -> list[str]:
+def save_update_plots(up, out_dir, batch=None) -> list[str]:
     """``up``: ``pipeline.TwoLayerUpdate``. Writes pareto.png, frequencies.png, magnet_accel.png
-    (the last only with a magnet layer); returns the paths."""
+    (the last only with a magnet layer; an earlier one is removed) into ``out_dir`` (created),
+    all renamed into place together, or staged in ``batch`` (:class:`maglev_ros.outputs.Batch`);
+    returns the paths."""
+    from maglev_ros.outputs import batch_or_new
+    with batch_or_new(batch) as b:
+        return _save(up, b.make_dir(out_dir, "--plot"), b)
+
+
+def _save(up, out: Path, batch) -> list[str]:
     plt = _plt()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = []
     layers = [("guideway layer", up.guideway, ("f1 = sum |f - f_meas| / f_meas", "f2 = sum (1 - MAC)"))]
     if up.magnet is not None:
@@ -37,8 +43,7 @@ def save_update_plots(up, out_dir) -> list[str]:
         ax.legend(fontsize=8)
     fig.tight_layout()
     p = out / "pareto.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
+    _write(batch, p, fig, plt)
     paths.append(str(p))
 
     doc = up.document
@@ -73,8 +78,7 @@ def save_update_plots(up, out_dir) -> list[str]:
     axt.text(0.0, 0.02, txt, fontsize=7, family="monospace", transform=axt.transAxes, va="bottom")
     fig.tight_layout()
     p = out / "frequencies.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
+    _write(batch, p, fig, plt)
     paths.append(str(p))
 
     if up.magnet_series:
@@ -94,7 +98,15 @@ def save_update_plots(up, out_dir) -> list[str]:
         axes[-1, 0].set_xlabel("time [s]")
         fig.tight_layout()
         p = out / "magnet_accel.png"
-        fig.savefig(p, dpi=110)
-        plt.close(fig)
+        _write(batch, p, fig, plt)
         paths.append(str(p))
+    else:
+        batch.remove(out / "magnet_accel.png")      # not beside plots of an update it is not from
     return paths
+
+
+def _write(batch, path: Path, fig, plt) -> None:
+    try:
+        batch.write_figure(path, fig, "--plot", dpi=110)
+    finally:
+        plt.close(fig)

@@ -5,6 +5,8 @@ on the ambient recording's modes (:mod:`..damping`) set before anything is fitte
 cannot make up for it); each pass's rail reconstructed with the nominal twin, E, kb, kp, kv
 calibrated on the training pass, the rail rebuilt ONCE with the calibrated twin and the calibration
 refined on it (kept for every hypothesis). The result states the calibrated fit per channel.
+A guard keeps the nominal twin (with the measured damping) when the calibrated one fits the
+held-out passes worse: a local fault in the training pass can drag the global parameters away.
 """
 from __future__ import annotations
 
@@ -62,6 +64,18 @@ class PassPreparer:
         return PassSet(ps, full, full[:1], full[:1] if self.same_heldout else full[1:])
 
 
+@dataclass(frozen=True)
+class CalibrationGuard:
+    """Held-out NRMSE of the nominal and the calibrated twin, each with its own rail; which was kept."""
+    heldout_nominal: float
+    heldout_calibrated: float
+    kept: str                          # "calibrated" | "nominal"
+
+    def to_dict(self) -> dict:
+        return {"heldout_nrmse_nominal": self.heldout_nominal,
+                "heldout_nrmse_calibrated": self.heldout_calibrated, "kept": self.kept}
+
+
 @dataclass(frozen=True, eq=False)
 class Calibration:
     nominal: ModelSpec                 # the design block's twin
@@ -72,6 +86,7 @@ class Calibration:
     prepare: PassPreparer              # to see them as another twin does
     fit_nrmse: float                   # whole-recording fit of the calibrated twin (all passes)
     fit_per_channel: dict
+    guard: "CalibrationGuard | None" = None   # held-out check against the nominal twin (None: one pass)
 
     @property
     def same_heldout(self) -> bool:
@@ -97,7 +112,7 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
         prep.notes.append(f"training pass: {passes[0].source} (the fastest, {mean_speed_mps(passes[0]):.1f} m/s); "
                           f"held out: {', '.join(p.source for p in passes[1:])}")
     progress.stage("calibrate the twin", total=4 if config.irregularity else 2)
-    data = prep(base0)
+    data0 = data = prep(base0)
     progress.advance(note="rail from the nominal twin")
     base = fit_base(base0, data.rd_train, config.base_max_nfev)
     progress.advance(note="calibrated")
@@ -106,5 +121,20 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
         progress.advance(note="rail from the calibrated twin")
         base = fit_base(base.spec, data.rd_train, config.base_refit_nfev)
         progress.advance(note="re-calibrated")
+    guard = None
+    if not prep.same_heldout:
+        guard = _guard(base0, data0, base, data)
+        if guard.kept == "nominal":
+            prep.notes.append(f"calibration refused: the calibrated twin fits the held-out passes worse than the "
+                              f"nominal one (NRMSE {guard.heldout_calibrated:.3f} vs {guard.heldout_nominal:.3f}); "
+                              "the nominal twin is kept")
+            base, data = fit_base(base0, data0.rd_train, max_nfev=1), data0   # one evaluation: its Jacobian
     nr, pc = fit_report(base.spec, data.rd_all)
-    return Calibration(nominal, base0, base, damping, data, prep, nr, pc)
+    return Calibration(nominal, base0, base, damping, data, prep, nr, pc, guard)
+
+
+def _guard(base0: ModelSpec, data0: PassSet, base: BaseFit, data: PassSet) -> CalibrationGuard:
+    """The calibrated twin is kept unless it fits the held-out passes worse than the nominal one."""
+    held_nom, _ = fit_report(base0, data0.rd_test)
+    held_cal, _ = fit_report(base.spec, data.rd_test)
+    return CalibrationGuard(held_nom, held_cal, "nominal" if held_cal > held_nom else "calibrated")

@@ -143,7 +143,8 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "parameter_details": _parameter_details(nominal, final_spec),
         "calibration": {"parameters": base.spec.calibrated_values(), "damping": damping.to_dict(),
                         "fit_per_group": _per_group(pc_before, {n: c.group for rd in rd_all
-                                                                for n, c in rd.rec.channels.items()})},
+                                                                for n, c in rd.rec.channels.items()}),
+                        **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {})},
     }
     if disc:
         report["discovery"] = [d for d in disc]

@@ -1,0 +1,146 @@
+"""The live diagnosis is the offline one: recordings assembled from the stream equal the bags'
+recordings, and the discrepancy node's report equals `diagnose` on the same bags."""
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+from discrepancy_cases import make_case, write_case_bags  # noqa: E402
+from rosgraph import ros_env  # noqa: E402
+
+from maglev_ros.bag_reader import BagReader  # noqa: E402
+from maglev_ros.discrepancy.diagnose import DiagnoseConfig, diagnose  # noqa: E402
+from maglev_ros.discrepancy.live import RecordingAssembler, diagnosis_events  # noqa: E402
+from maglev_ros.discrepancy.recording import load_recording  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+SAMPLE = HERE.parent / "bags"
+
+
+def _stream(paths):
+    """Every bag's metadata and blocks, in order, as the replay publishes them."""
+    for p in paths:
+        with BagReader(p) as b:
+            yield "metadata", b.metadata.raw
+            yield from b.iter_blocks()
+
+
+def _same_recording(a, b):
+    assert sorted(a.channels) == sorted(b.channels) and a.kind == b.kind
+    for n in b.channels:
+        assert np.array_equal(a.channels[n].time_s, b.channels[n].time_s)
+        assert np.array_equal(a.channels[n].values, b.channels[n].values)
+    for k in ("position_time_s", "position_m", "speed_mps"):
+        assert np.array_equal(getattr(a, k), getattr(b, k))
+
+
+def test_recordings_assembled_from_the_stream_equal_the_bags():
+    bags = [SAMPLE / "paper_ambient", SAMPLE / "paper_pass"]
+    asm, got = RecordingAssembler(), []
+    for topic, item in _stream(bags):
+        if topic == "metadata":
+            done = asm.set_metadata(item)
+            got += [done] if done is not None else []
+        else:
+            asm.add_block(topic, item)
+    got.append(asm.finish())
+    assert [r.kind for r in got] == ["ambient", "pass"] and asm.finish() is None
+    for r, p in zip(got, bags):
+        _same_recording(r, load_recording(p))
+
+
+def test_report_entries_become_mismatch_events():
+    rep = {"missing_physics": [{"effect": "bearing_stiffness", "category": "boundary_condition",
+                                "explanation": "x", "location": {"position_m": [21.6, 27.8], "channels": []},
+                                "frequency_hz": None, "evidence": {"heldout_nrmse_before": 0.4,
+                                                                   "heldout_nrmse_after": 0.2}}],
+           "mismatches": [{"channels": ["G1A"], "time_s": [1.0, 2.0], "position_m": None,
+                           "frequency_hz": [10.0, 20.0], "severity": 3.0}]}
+    ev = diagnosis_events(rep)
+    assert [e["effect"] for e in ev] == ["bearing_stiffness", ""]
+    assert ev[0]["position_m"] == [21.6, 27.8] and ev[0]["severity"] == pytest.approx(2.0)
+    assert np.isnan(ev[0]["frequency_hz"]).all() and np.isnan(ev[1]["position_m"]).all()
+    assert ev[1]["frequency_hz"] == [10.0, 20.0] and ev[1]["severity"] == 3.0
+
+
+def _science(rep):
+    """What the diagnosis found (the recordings' names differ: bag name vs live stream)."""
+    return {"fit_before": rep["fit_before"]["nrmse"], "fit_after": rep["fit_after"]["nrmse"],
+            "missing": [(m["effect"], json.dumps(m["parameters"], sort_keys=True, default=float))
+                        for m in rep["missing_physics"]],
+            "parameters": rep["updated_parameters"],
+            "mismatches": [(m["channels"], m["frequency_hz"], m["severity"]) for m in rep["mismatches"]]}
+
+
+@pytest.mark.ros
+def test_the_node_diagnoses_a_replayed_pass_as_the_offline_command_does(tmp_path):
+    case = make_case("live", "sensor_error", {"channel": "G2A", "kind": "scale", "value": 1.4}, seed=11,
+                     speeds=(24.0, 30.0), variant={"n_el": 20, "noise_colour": "white", "ambient_s": 8.0},
+                     n_spans=2)
+    amb, passes = write_case_bags(case, tmp_path / "bags")
+    cfg = DiagnoseConfig(n_top=1, fit_every_effect=False)      # fewer hypotheses: a quicker test
+    offline = {}
+    th = threading.Thread(target=lambda: offline.setdefault(
+        "rep", diagnose([load_recording(passes[0])], load_recording(amb), cfg).to_dict()))
+    env = ros_env(60)
+    log = open(tmp_path / "node.log", "w")
+    node = subprocess.Popen([sys.executable, "-m", "maglev_ros.nodes.discrepancy", "--ros-args",
+                             "-p", "n_top:=1", "-p", "fit_every_effect:=false", "-p", "recording_idle_s:=1.0"],
+                            env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
+    out = tmp_path / "got.json"
+    coll = subprocess.Popen([sys.executable, str(HERE / "ros_collect.py"), str(out), "400", "2",
+                             "std_msgs/msg/String:/maglev/diagnosis",
+                             "maglev_msgs/msg/MismatchReport:/maglev/mismatch"], env=env)
+    try:
+        time.sleep(1.0)
+        for bag in (amb, passes[0]):
+            r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", bag, "--fast", "--quiet",
+                                "--wait-subscribers", "1"], env=env, capture_output=True, text=True, timeout=120)
+            assert r.returncode == 0, r.stderr
+            time.sleep(2.5)          # the node sees the recording end (idle 1 s) before the next one
+        th.start()
+        th.join(timeout=400)
+        coll.wait(timeout=420)
+    finally:
+        for p in (node, coll):
+            if p.poll() is None:
+                p.send_signal(2)
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    got = json.loads(out.read_text())
+    log.close()
+    assert len(got["/maglev/diagnosis"]) == 1, (tmp_path / "node.log").read_text()
+    live = json.loads(got["/maglev/diagnosis"][0]["data"])
+    assert live["schema"] == "maglev-diagnosis/1"
+    assert _science(live) == _science(offline["rep"])
+    # one report per finding, with the physics named
+    named = [m for m in got["/maglev/mismatch"] if m["effect"]]
+    assert [m["effect"] for m in named] == [m["effect"] for m in live["missing_physics"]]
+
+
+def test_a_stream_in_g_is_assembled_in_si_as_the_bag_readers_do():
+    import dataclasses
+    from maglev_ros.contract import unit_conversion
+    g = unit_conversion("g")[1]
+    asm = RecordingAssembler()
+    for topic, item in _stream([SAMPLE / "paper_pass"]):
+        if topic == "metadata":
+            asm.set_metadata(item)
+            continue
+        if topic == "/testline/vehicle/accel":
+            item = dataclasses.replace(item, units=("g",) * len(item.channels),
+                                       data=(np.asarray(item.data, np.float64) / g).astype(np.float32))
+        asm.add_block(topic, item)
+    rec, ref = asm.finish(), load_recording(SAMPLE / "paper_pass")
+    for n, c in ref.channels.items():
+        # float32 samples in g: the SI values to float32 rounding
+        np.testing.assert_allclose(rec.channels[n].values, c.values, rtol=1e-6, atol=1e-6 * np.abs(c.values).max())

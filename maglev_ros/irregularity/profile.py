@@ -421,7 +421,7 @@ class InertialProfiler:
         return lam if self.min_wavelength_m is None else max(lam, float(self.min_wavelength_m))
 
     # -- time domain -> samples at positions -------------------------------------------------
-    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k):
+    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k, segment_means=None):
         """Return (x_m, r_m, warnings, bias) for the valid samples of one magnet (time order)."""
         warns = []
         gbad, gw = detect_dropouts(t, g, fs, spec.gap_channel)
@@ -432,7 +432,8 @@ class InertialProfiler:
         res = double_integrate(t, a, fs, self.highpass_hz, order=self.filter_order,
                                edge_s=self.edge_s, bad=gbad, channel=spec.accel_channel,
                                bias_sigma=self.bias_sigma, bias_floor_mps2=self.bias_floor_mps2,
-                               plus_highpassed=np.where(gbad, np.nan, dg))
+                               plus_highpassed=np.where(gbad, np.nan, dg),
+                               segment_means=segment_means)
         warns += list(res.warnings)
         r = res.displacement_m
         x = xref + spec.offset_m
@@ -522,12 +523,13 @@ class InertialProfiler:
         return np.where(v < self.stop_speed_mps, v, vs)
 
     def samples(self, accel, gap, position, magnet_offsets_m, nominal_gap_m,
-                deflection=None, channel_pairs=None):
+                deflection=None, channel_pairs=None, segment_means=None):
         """Per-magnet position samples before binning (used by fit and the streaming class).
 
         Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs); the speed
         is the one the band is judged by (:meth:`band_speed_series`). Needs a fixed corner (see
-        :meth:`resolve`)."""
+        :meth:`resolve`). ``segment_means``: per magnet, the ``segment_means`` hook of
+        :func:`~maglev_ros.irregularity.integration.double_integrate` (a piece of a record)."""
         if self.highpass_hz is None:
             raise UserError("highpass_hz: samples() needs a fixed corner (resolve() sets it)")
         specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
@@ -538,7 +540,8 @@ class InertialProfiler:
             a = _channel(accel, spec.accel_channel, "/testline/vehicle/accel")
             g = self._gap_on(t, tg, same, _channel(gap, spec.gap_channel, "/testline/vehicle/gap"))
             w = self._deflection(deflection, t, xref + spec.offset_m, spec, k)
-            x, r, wk, b = self._magnet_samples(t, a, g, xref, v, spec, float(nominal_gap_m), fs, w)
+            x, r, wk, b = self._magnet_samples(t, a, g, xref, v, spec, float(nominal_gap_m), fs, w,
+                                               None if segment_means is None else segment_means[k])
             out.append((x, r, v))
             warns += wk
             biases.append(b)

@@ -33,6 +33,7 @@ Memory: one window of three margins per topic, the dropout intervals, the profil
 """
 from __future__ import annotations
 
+import bisect
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -310,6 +311,7 @@ class _Segment:
     t0: float = math.nan
     t1: float = math.nan
     sum_a: float = 0.0
+    sum_dg: float = 0.0
     last_a: float = math.nan
     last_v: float = 0.0
     sum_v: float = 0.0
@@ -467,7 +469,8 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
     nopos = [0, None, None]
     ctx = 1.0 / fc + 1.0
     dt = 1.0 / fs
-    for t, a, _, core, first in stream.windows(context_s=ctx):
+    g0 = float(nominal_gap_m)
+    for t, a, g, core, first in stream.windows(context_s=ctx, gap=True):
         _, v_raw = cfg.reference_motion(t, src.position)
         v = cfg.band_speed_series(v_raw, fs)[core]
         tc = t[core]
@@ -483,7 +486,8 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
             nopos[2] = float(tc[bad_pos][-1])
         i_core = first + core.start
         for k in range(len(specs)):
-            _segment_sums(segs[k], a[core, a_col[k]], tc, i_core, dt, min_len, stage=1)
+            _segment_sums(segs[k], a[core, a_col[k]], tc, i_core, dt, min_len, stage=1,
+                          dg=g[core, g_col[k]] - g0)
     # the band (batch: InertialProfiler._band), the percentile read exactly from its bin
     if cfg.max_wavelength_m is not None:
         v_band = cfg.band_factor * fc * float(cfg.max_wavelength_m)
@@ -533,13 +537,15 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
     margin = MARGIN_PER_CORNER / fc
     acc = _BinAccumulator(cfg.spacing_m)
     slow = _SlowRuns(slow_mps, dt)
-    for t, a, g, core, _ in stream.windows(context_s=margin, gap=True):
+    for t, a, g, core, first in stream.windows(context_s=margin, gap=True):
         if t.size < 4:
             continue
         a_ns = SimpleNamespace(time_s=t, data=a, channels=src.accel.channels, sample_rate_hz=fs)
         g_ns = SimpleNamespace(time_s=t, data=g, channels=src.gap.channels, sample_rate_hz=fs)
+        # a piece of a segment loses its whole segment's means, not its own
+        hooks = [_means_hook(segs[k], first, min_len) for k in range(len(specs))]
         _, samp, _, _, _, _ = cfg.samples(a_ns, g_ns, src.position, magnet_offsets_m,
-                                          float(nominal_gap_m), None, channel_pairs)
+                                          g0, None, channel_pairs, hooks)
         for k, (x, r, vv) in enumerate(samp):
             x, r, vv = x[core], r[core], vv[core]
             keep = np.isfinite(r) & (vv >= slow_mps)
@@ -563,10 +569,29 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
                    sample_step_m=step_m)
 
 
-def _segment_sums(segs, a, t, i_core: int, dt: float, min_len: int, stage: int) -> None:
+def _means_hook(segs, first: int, min_len: int):
+    """double_integrate's ``segment_means`` for a window whose sample 0 is record sample
+    ``first``: the means of the magnet's whole segment holding a local clean run."""
+    starts = [s.i0 for s in segs]
+
+    def means(i0: int, i1: int):
+        j = bisect.bisect_right(starts, first + i0) - 1
+        if j < 0:
+            return None
+        s = segs[j]
+        n = s.i1 - s.i0
+        if not (first + i1 <= s.i1 and n >= min_len):
+            return None
+        return s.sum_a / n, s.sum_dg / n
+    return means
+
+
+def _segment_sums(segs, a, t, i_core: int, dt: float, min_len: int, stage: int,
+                  dg=None) -> None:
     """Add the samples ``i_core ..`` (accel ``a`` at times ``t``) to the sums of the segments
-    they fall in: stage 1 the end times, the mean and the velocity's trend (estimate_bias'
-    slope), stage 2 the residual's spread and zero crossings (they need the slope)."""
+    they fall in: stage 1 the end times, the means (with the gap change ``dg``) and the
+    velocity's trend (estimate_bias' slope), stage 2 the residual's spread and zero crossings
+    (they need the slope)."""
     i_end = i_core + a.size
     for s in segs:
         if s.i0 >= i_end:
@@ -592,6 +617,8 @@ def _segment_sums(segs, a, t, i_core: int, dt: float, min_len: int, stage: int) 
         v = np.cumsum(np.concatenate([[s.last_v if lo > s.i0 else 0.0], inc]))[1:]
         if stage == 1:
             s.sum_a = float(np.add.reduce(np.concatenate([[s.sum_a], x])))
+            s.sum_dg = float(np.add.reduce(np.concatenate([[s.sum_dg],
+                                                           dg[lo - i_core:hi - i_core]])))
             s.sum_v += float(v.sum())
             s.sum_jv += float(np.dot(j, v))
         else:

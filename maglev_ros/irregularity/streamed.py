@@ -22,29 +22,31 @@ pass; :func:`profile_streamed` computes those in light passes over the windows o
 
 Results. Step 4 is the batch computation on a piece of each clean segment. A segment wholly
 inside one window (every segment of a record shorter than a window: the sample bags) is
-integrated exactly as in the batch fit. A longer one is cut; the frequency-domain double
-integration of a sample then misses the segment beyond the cut, at least ``MARGIN_PER_CORNER /
-f_c`` away, where its impulse response has decayed as exp(-2 pi sin(pi/8) f_c t), by e^-24; and
-the batch fit's FFT of the whole segment wraps around over its 2/f_c zero pad, which a cut piece
-does not: near the ends of a long segment the two differ by ~1e-5 of the signal there (the
-last spatial wavelength is trimmed). Sums are taken in another order (segment means, grid bins:
-1e-16 relative). tests/test_faults_memory.py states the tolerance against the batch fit.
-Memory: one window of three margins per topic, the dropout intervals, the profile grid.
+integrated exactly as in the batch fit; a pass within one window is fitted whole by the batch
+code. A longer segment is cut, and its pieces are integrated with the whole segment's means
+(:func:`~maglev_ros.irregularity.integration.double_integrate`'s ``segment_means``). A sample
+then misses only the segment beyond the cut, at least ``MARGIN_PER_CORNER / f_c`` away, where
+the impulse response of the band-limited double integral has decayed as
+exp(-2 pi sin(pi/8) f_c t), by e^-24; and within a few 1/f_c of the segment's true ends the batch
+FFT wraps the segment's other end around over its 2/f_c zero pad, which a cut piece does not
+see: 4e-7 of the profile's peak measured there, 1e-11 elsewhere. Sums are taken in another order
+(segment means, grid bins: 1e-16 relative). tests/test_faults_memory.py states the tolerance
+against the batch fit. Memory: one window and its two margins per topic, the dropout
+intervals, the profile grid.
 """
 from __future__ import annotations
 
 import bisect
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
 
 from maglev_ros.errors import UserError
 from maglev_ros.irregularity.integration import DataWarning, _runs
-from maglev_ros.irregularity.profile import (
-    CornerChoice, InertialProfiler, _BinAccumulator, _finish)
+from maglev_ros.irregularity.profile import InertialProfiler, _BinAccumulator, _finish
 
 #: each window is processed with this many corner periods (1/f_c) of context on both sides
 MARGIN_PER_CORNER = 10.0
@@ -416,6 +418,9 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
     acc_ns = SimpleNamespace(channels=src.accel.channels)
     gap_ns = SimpleNamespace(channels=src.gap.channels)
     specs = cfg._specs(acc_ns, gap_ns, magnet_offsets_m, channel_pairs)
+    for t in (src.accel, src.gap):
+        if t.n_samples < 4:
+            raise UserError(f"{t.topic}: fewer than 4 samples")
     if len(window_edges(src.accel, stream.window_s)) == 1:
         accel, gap = (read_window(src.reader, t, -math.inf, math.inf).delayed_by(d)
                       for t, d in ((src.accel, src.accel_delay_s), (src.gap, src.gap_delay_s)))

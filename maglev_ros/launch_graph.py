@@ -13,19 +13,23 @@ class NodeSpec:
     module: str                     # python module with main()
     params: dict = field(default_factory=dict)
     needs_bag: bool = False         # only started when a bag is given
+    # a processing node ends only when stopped: its end while the graph runs (even with exit
+    # code 0, e.g. an outside SIGTERM) is a failure of the graph
+    runs_until_stopped: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {
     "monitor": [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("irregularity", "maglev_ros.nodes.irregularity"),
-        NodeSpec("modal_id", "maglev_ros.nodes.modal_id"),
+        NodeSpec("irregularity", "maglev_ros.nodes.irregularity", runs_until_stopped=True),
+        NodeSpec("modal_id", "maglev_ros.nodes.modal_id", runs_until_stopped=True),
         # history_path: set by the launcher in its output directory (unset: memory only)
-        NodeSpec("updater", "maglev_ros.nodes.updater"),
-        NodeSpec("discrepancy", "maglev_ros.nodes.discrepancy"),
+        NodeSpec("updater", "maglev_ros.nodes.updater", runs_until_stopped=True),
+        NodeSpec("discrepancy", "maglev_ros.nodes.discrepancy", runs_until_stopped=True),
         # the twin measures the irregularity under the vehicle itself (irregularity_source
         # "vehicle"; see maglev_ros.twin.online) and judges vehicle channels only where it has
-        NodeSpec("twin", "maglev_ros.nodes.twin", params={"irregularity_source": "vehicle", "dt_max_s": 5e-4}),
+        NodeSpec("twin", "maglev_ros.nodes.twin", params={"irregularity_source": "vehicle", "dt_max_s": 5e-4},
+                 runs_until_stopped=True),
     ],
 }
 

@@ -9,6 +9,12 @@ up (``wait_nodes``: no node's idle timer starts early) and its data only when ev
 has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` = 60 s (process
 start-up and imports take seconds on a loaded machine), so no node misses the beginning; it stays alive during the
 linger (``linger_s``), so its latched metadata stays available to late joiners.
+
+Every node process is watched. A node that ends with a non-zero code or by a signal (kill -9), or
+a node that runs until stopped (``NodeSpec.runs_until_stopped``) ending at all, while the graph
+runs stops the graph: the others get SIGINT (SIGKILL after ``STOP_TIMEOUT_S``) and
+:class:`GraphFailure` names the node and how it ended. A node ending with code 0 by design (the
+replay after its linger, the demo's summary) is no failure, nor is a clean exit when stopped.
 """
 from __future__ import annotations
 
@@ -20,13 +26,40 @@ import threading
 import time
 from dataclasses import dataclass
 
+from maglev_ros.errors import UserError
 from maglev_ros.launch_graph import NodeSpec, graph, ros_param_args
+
+STOP_TIMEOUT_S = 5.0
+# exit codes of a node stopped by SIGINT: 0 from run_node; 130 / -SIGINT from Python when the
+# signal came before the node installed its handler (still importing)
+_STOPPED_CLEANLY = (0, 130, -signal.SIGINT)
+
+
+class GraphFailure(UserError):
+    """A node of the graph ended while the graph ran, or crashed while it was being stopped."""
 
 
 @dataclass
 class Running:
     spec: NodeSpec
     proc: subprocess.Popen
+    pump: threading.Thread | None = None
+    killed: bool = False          # SIGKILLed by stop_all: it did not stop within its timeout
+
+
+def how_it_ended(returncode: int) -> str:
+    """'killed by SIGKILL' or 'exit code 1', from a Popen returncode."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit code {returncode}"
+
+
+def _ended_wrongly(r: Running) -> bool:
+    rc = r.proc.poll()
+    return rc is not None and (rc != 0 or r.spec.runs_until_stopped)
 
 
 def _pump(name: str, stream, out) -> None:
@@ -38,9 +71,11 @@ def _pump(name: str, stream, out) -> None:
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
            params_file: str | None = None, linger_s: float = 30.0, env: dict | None = None,
            out=sys.stderr, on_started=None, extra: list[NodeSpec] = ()) -> int:
-    """Run a graph until its replay ends (or Ctrl-C). Returns the replay's exit code."""
+    """Run a graph until its replay ends. Returns 0 when every node ran and ended as it should,
+    130 on Ctrl-C; raises :class:`GraphFailure` (after stopping the graph) when a node failed."""
     overrides = overrides or {}
     procs: list[Running] = []
+    failures: list[str] = []
     penv = dict(os.environ if env is None else env)
     specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
     others = [s.name for s in specs if not s.needs_bag]
@@ -58,37 +93,68 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
             cmd += ros_param_args(params)
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     text=True, env=penv, start_new_session=True)
-            threading.Thread(target=_pump, args=(spec.name, proc.stdout, out), daemon=True).start()
-            procs.append(Running(spec, proc))
+            pump = threading.Thread(target=_pump, args=(spec.name, proc.stdout, out), daemon=True)
+            pump.start()
+            procs.append(Running(spec, proc, pump))
         if on_started is not None:
             on_started()
         replay = next((r for r in procs if r.spec.needs_bag), None)
         while True:
-            if replay is not None and replay.proc.poll() is not None:
-                return replay.proc.returncode       # it lingered (linger_s) before exiting
-            if replay is None and all(r.proc.poll() is not None for r in procs):
-                return 0
-            dead = [r for r in procs if r.proc.poll() not in (None, 0)]
-            if replay is not None:
-                dead = [r for r in dead if r is replay]
+            dead = [r for r in procs if _ended_wrongly(r)]
             if dead:
-                out.write(f"[launch] {dead[0].spec.name} exited with code {dead[0].proc.returncode}\n")
-                return dead[0].proc.returncode
+                for r in dead:
+                    r.pump.join(2.0)                # its last words (a traceback) before our line
+                    failures.append(f"node {r.spec.name} ended ({how_it_ended(r.proc.returncode)}) "
+                                    f"while the graph was running")
+                    out.write(f"[launch] {failures[-1]}: stopping the graph\n")
+                break
+            if replay is not None and replay.proc.poll() is not None:
+                break                               # it lingered (linger_s) before exiting
+            if replay is None and all(r.proc.poll() is not None for r in procs):
+                break
             time.sleep(0.1)
     except KeyboardInterrupt:
-        return 130
-    finally:
         stop_all(procs)
+        return 130
+    except BaseException:
+        stop_all(procs)
+        raise
+    running = [r for r in procs if r.proc.poll() is None]
+    stop_all(procs)
+    for r in running:
+        if r.pump is not None:
+            r.pump.join(2.0)
+        if r.killed:
+            out.write(f"[launch] {r.spec.name} did not stop within {STOP_TIMEOUT_S:g} s of SIGINT: killed\n")
+        elif r.proc.returncode not in _STOPPED_CLEANLY:
+            failures.append(f"node {r.spec.name} ended ({how_it_ended(r.proc.returncode)}) while the "
+                            f"graph was being stopped")
+            out.write(f"[launch] {failures[-1]}\n")
+    out.flush()
+    if failures:
+        more = f" (and {len(failures) - 1} more, see above)" if len(failures) > 1 else ""
+        raise GraphFailure(failures[0] + more)
+    return 0
 
 
-def stop_all(procs: list[Running], timeout_s: float = 5.0) -> None:
+def stop_all(procs: list[Running], timeout_s: float = STOP_TIMEOUT_S) -> None:
+    """SIGINT to every running node's process group; SIGKILL (``killed``) to those still running
+    after ``timeout_s``."""
     for r in procs:
         if r.proc.poll() is None:
-            os.killpg(r.proc.pid, signal.SIGINT)
+            _signal_group(r, signal.SIGINT)
     deadline = time.monotonic() + timeout_s
     for r in procs:
         try:
             r.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
-            os.killpg(r.proc.pid, signal.SIGKILL)
+            r.killed = True
+            _signal_group(r, signal.SIGKILL)
             r.proc.wait()
+
+
+def _signal_group(r: Running, sig: int) -> None:
+    try:
+        os.killpg(r.proc.pid, sig)
+    except ProcessLookupError:      # the group is gone (the node ended meanwhile)
+        pass

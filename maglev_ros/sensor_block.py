@@ -11,6 +11,7 @@ definition equals ours, is checked against rosbags in the tests, and falls back 
 from __future__ import annotations
 
 import functools
+import math
 import os
 import struct
 import sys
@@ -25,7 +26,7 @@ from maglev_ros.errors import ContractError, UserError
 __all__ = ["Block", "MSG_PACKAGE", "MSG_NAMES", "msg_dir", "msg_text", "typestore",
            "msgtype_name", "block_to_msg", "msg_to_block", "string_msg", "make_header",
            "serialize", "deserialize", "SENSORBLOCK_TYPE", "STRING_TYPE", "SensorBlockDecoder",
-           "DecodedBlock"]
+           "DecodedBlock", "BLOCK_FAULT_KINDS", "MAX_RATE_HZ", "block_fault", "StreamCheck"]
 
 MSG_PACKAGE = "maglev_msgs"
 # Order matters for registration only through dependencies (ModalMode before ModalEstimate).
@@ -100,6 +101,63 @@ class Block:
         if not sample_rate_hz > 0:
             raise UserError(f"block sample_rate_hz must be > 0, got {sample_rate_hz!r}")
         return cls(int(stamp_ns), frame_id, float(sample_rate_hz), channels, units, arr)
+
+
+
+# ------------------------------------------------------------------------- block validation
+# data_length, units_mismatch and bad_rate as BagReader.check names the same issues in a bag
+BLOCK_FAULT_KINDS = ("no_channels", "data_length", "units_mismatch", "bad_rate", "empty", "layout_changed")
+# No contract stream samples near 1 MHz (its fastest are kHz): a larger rate is a corrupted field,
+# and a consumer stepping or allocating at it would hang.
+MAX_RATE_HZ = 1e6
+
+
+def block_fault(channels, units, sample_rate_hz, n_values: int) -> tuple[str, str] | None:
+    """Why a SensorBlock's fields cannot make a usable :class:`Block`: ``(kind, reason)``, or None.
+
+    ``kind`` is one of :data:`BLOCK_FAULT_KINDS`; ``reason`` is one line naming the field.
+    """
+    nch = len(channels)
+    if nch == 0:
+        return "no_channels", "channels is empty"
+    if n_values % nch:
+        return "data_length", f"data has {n_values} values, not a multiple of {nch} channels"
+    if len(units) != nch:
+        return "units_mismatch", f"{nch} channels but {len(units)} units"
+    rate = float(sample_rate_hz)
+    if not (math.isfinite(rate) and 0 < rate <= MAX_RATE_HZ):
+        return "bad_rate", f"sample_rate_hz must be in (0, {MAX_RATE_HZ:g}] Hz, got {sample_rate_hz!r}"
+    if n_values == 0:
+        return "empty", "data holds no samples"
+    return None
+
+
+class StreamCheck:
+    """The check of a live stream's blocks, topic by topic: :func:`block_fault`, then the layout.
+
+    The first good block of a topic sets its layout (channels, units, sample rate); a later block
+    with another layout is a fault ("layout_changed"): consumers index channels by position and
+    step at the topic's rate, so a block that changes them mid-stream would be misread.
+    """
+
+    def __init__(self) -> None:
+        self.layout: dict[str, tuple] = {}
+
+    def fault(self, topic: str, channels, units, sample_rate_hz, n_values: int) -> tuple[str, str] | None:
+        found = block_fault(channels, units, sample_rate_hz, n_values)
+        if found is not None:
+            return found
+        layout = (tuple(channels), tuple(units), float(sample_rate_hz))
+        first = self.layout.setdefault(topic, layout)
+        if layout != first:
+            return "layout_changed", (f"channels {list(layout[0])} [{', '.join(layout[1])}] at {layout[2]:g} Hz "
+                                      f"differ from the topic's first block: {list(first[0])} "
+                                      f"[{', '.join(first[1])}] at {first[2]:g} Hz")
+        return None
+
+    def new_stream(self) -> None:
+        """A new recording starts (new metadata): its topics may have another layout."""
+        self.layout.clear()
 
 
 # ------------------------------------------------------------------------------- msg texts

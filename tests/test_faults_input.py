@@ -43,3 +43,50 @@ def test_deeply_nested_metadata_stops_the_replay_in_one_line(nested_bag):
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode != 0
     _one_line(r.stderr, "metadata is nested too deeply")
+
+
+class _Log:
+    def __init__(self):
+        self.lines = []
+
+    def warning(self, m):
+        self.lines.append(m)
+
+
+class _Node:
+    def __init__(self):
+        self.log = _Log()
+
+    def get_logger(self):
+        return self.log
+
+
+class _Diag:
+    def add_check(self, f):
+        self.check = f
+
+
+def _msg(channels, units, data, rate=100.0):
+    from types import SimpleNamespace
+    import numpy as np
+    return SimpleNamespace(channels=list(channels), units=list(units), sample_rate_hz=rate,
+                           data=np.asarray(data, np.float32).ravel().tobytes(),
+                           header=SimpleNamespace(stamp=SimpleNamespace(sec=1, nanosec=0), frame_id="x"))
+
+
+def test_nodes_take_blocks_in_si_as_the_verbs_do():
+    import numpy as np
+    from maglev_ros.contract import unit_conversion
+    from maglev_ros.nodes._common import BlockGate
+    node, diag = _Node(), _Diag()
+    gate = BlockGate(node, diag)
+    x = np.array([[0.5, 1.0], [-0.25, 2.0]])
+    b = gate.block(_msg(("M1A", "M2A"), ("g", "g"), x), "/testline/vehicle/accel")
+    np.testing.assert_allclose(b.data, x * unit_conversion("g")[1], rtol=1e-6)
+    assert b.units == ("m/s^2", "m/s^2")
+    gate.block(_msg(("M1A", "M2A"), ("g", "g"), x), "/testline/vehicle/accel")
+    assert len(node.log.lines) == 1 and "g -> m/s^2" in node.log.lines[0]      # said once per topic
+    # a unit outside the table (a new stream: a changed layout is its own fault): dropped and counted
+    gate.new_stream()
+    assert gate.block(_msg(("M1A", "M2A"), ("furlong", "g"), x), "/testline/vehicle/accel") is None
+    assert diag.check().values["dropped_unit"] == 1 and "furlong" in node.log.lines[-1]

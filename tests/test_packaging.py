@@ -33,6 +33,7 @@ ROSDEP_KEY = {
     "rclpy": "rclpy", "std_msgs": "std_msgs", "std_srvs": "std_srvs",
     "rosgraph_msgs": "rosgraph_msgs", "builtin_interfaces": "builtin_interfaces",
     "launch": "launch", "launch_ros": "launch_ros", "maglev_msgs": "maglev_msgs",
+    "diagnostic_msgs": "diagnostic_msgs",
 }
 # imported only when installed (guarded import) and without a rosdep key: pip brings it
 OPTIONAL_WITHOUT_KEY = {"threadpoolctl"}

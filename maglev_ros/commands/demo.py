@@ -90,12 +90,13 @@ def _run(args, out: Path, progress) -> int:
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     summary = NodeSpec("summary", "maglev_ros.nodes.summary",
                        params={"idle_s": 3.0, "json_out": str(graph_json.resolve())})
+    # a node that dies raises GraphFailure (one line naming it) after the graph was stopped
     code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=15.0,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
                                         "wait_subscribers": 1},
                              "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})
-    if code != 0:
-        raise UserError(f"replay ended with code {code}")
+    if code != 0:       # 130: Ctrl-C stopped the graph
+        raise KeyboardInterrupt
     if not graph_json.exists():
         raise UserError("the summary node saw no messages (is DDS on loopback blocked?)")
     flow = json.loads(graph_json.read_text())

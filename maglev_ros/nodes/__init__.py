@@ -3,6 +3,10 @@
 The console scripts (``maglev_<node>`` from pip, ``<node>`` in colcon's ``lib/maglev_ros``) enter
 through the ``*_main`` functions below, which first check that ROS 2 and the suite's messages are
 importable and otherwise say in one line how to get them.
+
+Every SensorBlock a node takes passes ``_common.BlockGate`` (a malformed block is dropped, counted,
+logged once per kind); each such node publishes its health on /diagnostics (``_diagnostics``).
+Message classes come only from ``_common.ALLOWED_TYPES``.
 """
 from __future__ import annotations
 
@@ -21,8 +25,9 @@ HOW_TO_GET_ROS = ("run scripts/install from the maglev_ros source tree (ROS 2 wh
 
 
 def require_ros() -> None:
-    """Raise UserError naming what is missing when rclpy or maglev_msgs cannot be imported."""
-    missing = [m for m in ("rclpy", "maglev_msgs") if importlib.util.find_spec(m) is None]
+    """Raise UserError naming what is missing when rclpy, maglev_msgs or diagnostic_msgs cannot be
+    imported."""
+    missing = [m for m in ("rclpy", "maglev_msgs", "diagnostic_msgs") if importlib.util.find_spec(m) is None]
     if missing:
         raise UserError(f"the ROS 2 nodes need {' and '.join(missing)} (not installed): "
                         + HOW_TO_GET_ROS)

@@ -1,9 +1,11 @@
-"""Small shared pieces of the ROS 2 adapters: QoS profiles, message classes, clean spin/shutdown."""
+"""Small shared pieces of the ROS 2 adapters: QoS profiles, the allow-list of message classes,
+the edge check of incoming SensorBlocks, clean spin/shutdown."""
 from __future__ import annotations
 
 import importlib
 import os
 import sys
+from collections import Counter
 
 import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -24,12 +26,31 @@ QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 LATCHED_TOPICS = ("/testline/metadata", "/maglev/twin/parameters")
 
 
+def _allowed_types() -> dict[str, tuple[str, str]]:
+    from maglev_ros.sensor_block import MSG_NAMES
+    table = {f"maglev_msgs/msg/{n}": ("maglev_msgs.msg", n) for n in MSG_NAMES}
+    table.update({"std_msgs/msg/String": ("std_msgs.msg", "String"),
+                  "rosgraph_msgs/msg/Clock": ("rosgraph_msgs.msg", "Clock"),
+                  "diagnostic_msgs/msg/DiagnosticArray": ("diagnostic_msgs.msg", "DiagnosticArray")})
+    return table
+
+
+# The message types the nodes publish or subscribe (ours and the standard ones the graph uses).
+# A type name read from a bag or the graph only selects an entry here: what is imported is always
+# a module named in this table, never a name a recording supplies.
+ALLOWED_TYPES = _allowed_types()
+
+
 def message_class(msgtype: str):
-    """The rclpy class of a ROS 2 type name like ``maglev_msgs/msg/SensorBlock`` (None if absent)."""
+    """The rclpy class of an allowed type name like ``maglev_msgs/msg/SensorBlock``; None when the
+    type is not on :data:`ALLOWED_TYPES` or its package is not installed."""
+    entry = ALLOWED_TYPES.get(msgtype)
+    if entry is None:
+        return None
+    module, name = entry
     try:
-        pkg, kind, name = msgtype.split("/")
-        return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
-    except (ValueError, ImportError, AttributeError):
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError):
         return None
 
 
@@ -91,8 +112,82 @@ def run_node(node_factory, args=None) -> int:
     return code
 
 
+class BlockGate:
+    """The edge check of every SensorBlock a node takes (:class:`maglev_ros.sensor_block.StreamCheck`).
+
+    ``block(msg, topic)`` returns the core Block, or None for a malformed one, which is dropped,
+    counted per kind and topic and logged once per kind; the counts go to ``/diagnostics``
+    (WARN once any block was dropped: the node's results then lack those samples).
+    """
+
+    def __init__(self, node, diagnostics) -> None:
+        from maglev_ros.sensor_block import StreamCheck
+        self.node = node
+        self.stream = StreamCheck()
+        self.accepted = 0
+        self.dropped: Counter = Counter()            # kind -> blocks
+        self.dropped_on: Counter = Counter()         # topic -> blocks
+        self.converted: dict = {}                    # topic -> unit conversions made (logged once)
+        diagnostics.add_check(self.check)
+
+    def new_stream(self) -> None:
+        """Call on new metadata: the next block of each topic sets its layout again."""
+        self.stream.new_stream()
+
+    @property
+    def seen(self) -> int:
+        return self.accepted + sum(self.dropped.values())
+
+    def block(self, msg, topic: str):
+        fault = self.stream.fault(topic, msg.channels, msg.units, msg.sample_rate_hz, len(msg.data))
+        if fault is None:
+            fault = self._to_si(topic, block_from_msg(msg))
+            if not isinstance(fault, tuple):
+                self.accepted += 1
+                return fault
+        kind, reason = fault
+        if not self.dropped[kind]:
+            stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            self.node.get_logger().warning(
+                f"{topic}: dropped a malformed SensorBlock stamped {stamp_s:.3f} s: {reason} "
+                f"(further '{kind}' blocks are dropped and counted on /diagnostics, not logged)")
+        self.dropped[kind] += 1
+        self.dropped_on[topic] += 1
+        return None
+
+    def _to_si(self, topic: str, block):
+        """The block in SI by the contract's unit table, as every verb reads it (maglev_ros.health),
+        or the fault ('unit', why) of a unit the table does not know."""
+        from maglev_ros.errors import ContractError
+        from maglev_ros.health import block_to_si
+        try:
+            si, conv = block_to_si(topic, block)
+        except ContractError as exc:
+            return "unit", str(exc)
+        if conv and topic not in self.converted:
+            self.converted[topic] = conv
+            self.node.get_logger().warning(
+                f"{topic}: converted to SI by the contract's unit table: "
+                + ", ".join(f"{c.channel} {c.unit} -> {c.si_unit}" for c in conv))
+        return si
+
+    def check(self):
+        from maglev_ros.nodes._diagnostics import OK, WARN, Check
+        from maglev_ros.sensor_block import BLOCK_FAULT_KINDS
+        n = sum(self.dropped.values())
+        values = {"blocks_accepted": self.accepted, "blocks_dropped": n}
+        values.update({f"dropped_{k}": self.dropped[k] for k in (*BLOCK_FAULT_KINDS, "unit")})
+        values.update({f"dropped_on {t}": c for t, c in sorted(self.dropped_on.items())})
+        if not n:
+            return Check(OK, "", values)
+        kinds = ", ".join(f"{k} {c}" for k, c in sorted(self.dropped.items()))
+        return Check(WARN, f"dropped {n} malformed SensorBlock(s) ({kinds})", values)
+
+
 def block_from_msg(msg):
-    """rclpy SensorBlock -> core :class:`maglev_ros.sensor_block.Block` (no copy of the samples)."""
+    """rclpy SensorBlock -> core :class:`maglev_ros.sensor_block.Block` (no copy of the samples).
+
+    Only for a block that passed :class:`BlockGate` (its shape is not checked here)."""
     import numpy as np
 
     from maglev_ros.sensor_block import Block

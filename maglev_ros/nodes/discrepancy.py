@@ -39,7 +39,8 @@ from maglev_msgs.msg import MismatchReport, SensorBlock
 from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.discrepancy.online import OnlineDetector
 from maglev_ros.errors import ContractError
-from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 TOPIC_DIAGNOSIS = "/maglev/diagnosis"
@@ -64,13 +65,14 @@ class DiscrepancyNode(Node):
         self.idle_s = num("recording_idle_s", 2.0)
         self.pub = self.create_publisher(MismatchReport, TOPIC_MISMATCH, QOS_STREAM)
         self.pub_diag = self.create_publisher(String, TOPIC_DIAGNOSIS, QOS_LATCHED)
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         self.subs = {}
-        self.create_subscription(SensorBlock, "/testline/vehicle/position", self._on_position, QOS_STREAM)
+        self.create_subscription(SensorBlock, TOPIC_VEHICLE_POSITION, self._on_position, QOS_STREAM)
         if self.detector.rel_allowance > 0 or self.live:
             for topic in measured:
                 if topic:
-                    self.create_subscription(SensorBlock, topic, lambda m, t=topic: self._on_measured(t, m),
-                                             QOS_STREAM)
+                    self.create_subscription(SensorBlock, topic, self._on_measured(topic), QOS_STREAM)
         self.assembler = self.diagnoser = None
         if self.live:
             from maglev_ros.discrepancy.live import LiveDiagnoser, RecordingAssembler
@@ -92,19 +94,24 @@ class DiscrepancyNode(Node):
     def _discover(self) -> None:
         for name, types in self.get_topic_names_and_types():
             if name.startswith(RESIDUAL_PREFIX) and name not in self.subs and "maglev_msgs/msg/SensorBlock" in types:
-                self.subs[name] = self.create_subscription(SensorBlock, name, self._on_residual, QOS_STREAM)
+                self.subs[name] = self.create_subscription(SensorBlock, name, self._on_residual(name), QOS_STREAM)
 
     def _on_position(self, msg) -> None:
-        b = block_from_msg(msg)
-        if "position_m" in b.channels:
+        b = self.gate.block(msg, TOPIC_VEHICLE_POSITION)
+        if b is not None and "position_m" in b.channels:
             self.detector.add_position(b.times_s(), b.data[:, b.channels.index("position_m")])
-        self._collect(TOPIC_VEHICLE_POSITION, b)
+        if b is not None:
+            self._collect(TOPIC_VEHICLE_POSITION, b)
 
-    def _on_measured(self, topic, msg) -> None:
-        b = block_from_msg(msg)
-        if self.detector.rel_allowance > 0:
-            self.detector.add_measured_block(b)
-        self._collect(topic, b)
+    def _on_measured(self, topic: str):
+        def cb(msg) -> None:
+            b = self.gate.block(msg, topic)
+            if b is None:
+                return
+            if self.detector.rel_allowance > 0:
+                self.detector.add_measured_block(b)
+            self._collect(topic, b)
+        return cb
 
     # --- the diagnosis of whole recordings (same stages as `maglev-ros diagnose`)
     def _collect(self, topic, block) -> None:
@@ -120,6 +127,7 @@ class DiscrepancyNode(Node):
         except ContractError as exc:
             self.get_logger().error(f"{exc}; recordings are not diagnosed")
             return
+        self.gate.new_stream()       # a new recording may have its own layout (rate, channels)
         with self._lock:
             done = self._finished(lambda: self.assembler.set_metadata(md))
         if done is not None:
@@ -180,9 +188,14 @@ class DiscrepancyNode(Node):
                                f"missing physics: {', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}"
                                f" ({n} entr{'y' if n == 1 else 'ies'})")
 
-    def _on_residual(self, msg) -> None:
-        for ev in self.detector.add_block(block_from_msg(msg)):
-            self._publish(ev)
+    def _on_residual(self, topic: str):
+        def cb(msg) -> None:
+            b = self.gate.block(msg, topic)
+            if b is None:
+                return
+            for ev in self.detector.add_block(b):
+                self._publish(ev)
+        return cb
 
     def _publish(self, ev) -> None:
         out = MismatchReport()

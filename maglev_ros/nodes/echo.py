@@ -15,7 +15,7 @@ import rclpy
 from rclpy.node import Node
 
 from maglev_ros.errors import UserError
-from maglev_ros.nodes._common import message_class, qos_for
+from maglev_ros.nodes._common import ALLOWED_TYPES, message_class, qos_for
 from maglev_ros.nodes._echo_options import add_arguments
 
 
@@ -52,6 +52,9 @@ class EchoNode(Node):
         self.finished = False
         msgtype = self._discover_type(type_timeout_s)
         cls = message_class(msgtype)
+        if cls is None and msgtype not in ALLOWED_TYPES:
+            raise UserError(f"topic {topic} has type {msgtype}, which is not one of the message types echo "
+                            f"reads ({', '.join(sorted(ALLOWED_TYPES))})")
         if cls is None:
             raise UserError(f"topic {topic} has type {msgtype}, which is not installed here")
         self.create_subscription(cls, topic, self._on_msg, qos_for(topic))

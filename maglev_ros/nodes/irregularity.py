@@ -22,7 +22,8 @@ from maglev_msgs.msg import IrregularityProfile, SensorBlock
 from maglev_ros.contract import (TOPIC_METADATA, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                  TOPIC_VEHICLE_POSITION, parse_metadata)
 from maglev_ros.errors import UserError
-from maglev_ros.nodes._common import QOS_LATCHED, block_from_msg, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import QOS_LATCHED, BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 
@@ -42,14 +43,17 @@ class IrregularityNode(Node):
         self.published_signature = None
         self.warned: set = set()
         self.pub = self.create_publisher(IrregularityProfile, TOPIC_IRREGULARITY, QOS_LATCHED)
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
         for topic, key in ((TOPIC_VEHICLE_ACCEL, "accel"), (TOPIC_VEHICLE_GAP, "gap"),
                            (TOPIC_VEHICLE_POSITION, "position")):
-            self.create_subscription(SensorBlock, topic, self._on_block(key), qos_for(topic))
+            self.create_subscription(SensorBlock, topic, self._on_block(topic, key), qos_for(topic))
         self.create_timer(period, self._publish)
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
+        self.gate.new_stream()
         try:
             md = parse_metadata(msg.data, TOPIC_METADATA)
             offsets = md.magnet_offsets_m
@@ -69,9 +73,11 @@ class IrregularityNode(Node):
             self._feed(key, block)
         self.pending.clear()
 
-    def _on_block(self, key: str):
+    def _on_block(self, topic: str, key: str):
         def cb(msg) -> None:
-            block = block_from_msg(msg)
+            block = self.gate.block(msg, topic)
+            if block is None:
+                return
             self.last_stamp_ns = max(self.last_stamp_ns, block.end_ns)
             if self.profiler is None:
                 self.pending.append((key, block))

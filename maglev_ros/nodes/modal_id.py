@@ -20,7 +20,8 @@ from std_msgs.msg import String
 from maglev_msgs.msg import ModalEstimate, ModalMode, SensorBlock
 from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, parse_metadata
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
-from maglev_ros.nodes._common import block_from_msg, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_MODES = "/maglev/modes"
 
@@ -37,11 +38,14 @@ class ModalIdNode(Node):
         self.core = OnlineModalID(OnlineModalConfig(**values))
         self.wanted = [c for c in self.declare_parameter("channels", [""]).value if c]
         self.pub = self.create_publisher(ModalEstimate, TOPIC_MODES, qos_for(TOPIC_MODES))
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
         self.create_subscription(SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block,
                                  qos_for(TOPIC_GUIDEWAY_ACCEL))
 
     def _on_metadata(self, msg) -> None:
+        self.gate.new_stream()
         if self.wanted:
             return
         try:
@@ -53,7 +57,9 @@ class ModalIdNode(Node):
                        if s.direction in (None, "vertical")]
 
     def _on_block(self, msg) -> None:
-        block = block_from_msg(msg)
+        block = self.gate.block(msg, TOPIC_GUIDEWAY_ACCEL)
+        if block is None:
+            return
         cols = list(range(len(block.channels)))
         if self.wanted:
             cols = [j for j, c in enumerate(block.channels) if c in self.wanted] or cols

@@ -23,7 +23,6 @@ Parameters: ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush
 from __future__ import annotations
 
 import array
-import json
 import sys
 import time
 
@@ -31,25 +30,13 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import IrregularityProfile, SensorBlock, TwinParameters
-from maglev_ros.nodes._common import QOS_STREAM, qos_for, run_node
+from maglev_ros.contract import parse_metadata
+from maglev_ros.nodes._common import QOS_STREAM, BlockGate, qos_for, run_node
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 TOPIC_PARAMETERS = "/maglev/twin/parameters"
 MAX_EARLY_BLOCKS = 2000
-
-
-def _to_block(msg):
-    import numpy as np
-    from maglev_ros.sensor_block import Block
-    chans = tuple(msg.channels)
-    try:
-        data = np.frombuffer(msg.data, dtype=np.float32)   # array.array('f'): no copy
-    except TypeError:
-        data = np.asarray(msg.data, dtype=np.float32)
-    n = len(chans)
-    data = data.reshape(-1, n) if n else data.reshape(0, 0)
-    stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-    return Block(int(stamp), msg.header.frame_id, float(msg.sample_rate_hz), chans, tuple(msg.units), data)
 
 
 def _to_msg(block) -> SensorBlock:
@@ -90,6 +77,8 @@ class TwinNode(Node):
         self.pending_params = None
         self.pending_profile = None
         self.pubs = {}
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         for g in GROUP_TOPICS:
             self.pubs[PREDICTED_PREFIX + g] = self.create_publisher(SensorBlock, PREDICTED_PREFIX + g, QOS_STREAM)
             self.pubs[RESIDUAL_PREFIX + g] = self.create_publisher(SensorBlock, RESIDUAL_PREFIX + g, QOS_STREAM)
@@ -125,8 +114,9 @@ class TwinNode(Node):
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
         from maglev_ros.twin.online import OnlineTwin
+        self.gate.new_stream()
         try:
-            md = json.loads(msg.data)
+            md = parse_metadata(msg.data, "/testline/metadata").raw
             self.core = OnlineTwin(md, psd=self.opts["psd"], band_m=self.opts["band_m"], seed=self.opts["seed"],
                                    method=self.opts["method"], fs_hz=self.opts["fs_hz"],
                                    dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"],
@@ -148,7 +138,9 @@ class TwinNode(Node):
 
     def _cb(self, topic: str):
         def on_msg(msg) -> None:
-            blk = _to_block(msg)
+            blk = self.gate.block(msg, topic)
+            if blk is None:
+                return
             self.n_in += 1
             self.last_input = time.monotonic()
             if self.core is None:

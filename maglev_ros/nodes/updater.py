@@ -24,7 +24,6 @@ and updating the guideway meanwhile); only accepting and storing the result take
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import threading
@@ -33,7 +32,9 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
-from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, block_from_msg, qos_for, run_node
+from maglev_ros.contract import parse_metadata
+from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node
+from maglev_ros.nodes._diagnostics import NodeDiagnostics
 
 TOPIC_PARAMETERS = "/maglev/twin/parameters"
 TOPIC_MODES = "/maglev/modes"
@@ -55,6 +56,8 @@ class UpdaterNode(Node):
         self.n_logged = 0
         self.magnet_enabled = bool(p("magnet_layer", True).value)
         self.pub = self.create_publisher(TwinParameters, TOPIC_PARAMETERS, QOS_LATCHED)
+        self.diagnostics = NodeDiagnostics(self)
+        self.gate = BlockGate(self, self.diagnostics)
         self.lock = threading.Lock()
         self.worker: threading.Thread | None = None
         self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
@@ -95,9 +98,10 @@ class UpdaterNode(Node):
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
         from maglev_ros.updating.history import line_key
+        self.gate.new_stream()
         try:
             with self.lock:
-                self.core.set_metadata(json.loads(msg.data))
+                self.core.set_metadata(parse_metadata(msg.data, "/testline/metadata").raw)
                 key = line_key(self.core.md.raw)
                 if key == self.line:
                     return
@@ -129,14 +133,17 @@ class UpdaterNode(Node):
 
     def _vehicle(self, topic: str):
         def cb(msg) -> None:
+            blk = self.gate.block(msg, topic)
+            if blk is None:
+                return
             with self.lock:
-                self.core.on_vehicle_block(topic, block_from_msg(msg))
+                self.core.on_vehicle_block(topic, blk)
         return cb
 
     def _on_residual(self, msg) -> None:
-        if not self.magnet_enabled:
+        blk = self.gate.block(msg, TOPIC_RESIDUAL)
+        if blk is None or not self.magnet_enabled:
             return
-        blk = block_from_msg(msg)
         with self.lock:
             if self.worker is not None and self.worker.is_alive():
                 return

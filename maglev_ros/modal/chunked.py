@@ -17,7 +17,8 @@ chunks (:class:`ArrayChunks`, :class:`TopicChunks`) and keeps per band only what
    :func:`~maglev_ros.modal.stabilization.sv_spectrum`;
 4. SSI-cov from the covariances (:meth:`SSICov.fit_covariances`, unchanged);
 5. for the Whittle polish, each mode's periodogram over its band only: the DFT of the modal
-   filter output at those bins, summed over chunks by chirp-z transforms (:class:`BandDFT`).
+   filter output at those bins, summed over pieces by Bluestein chirp-z transforms
+   (:class:`BandDFT`).
 
 Steps 1-4 give the same floats as the whole-record path; step 5 sums the same DFT in another
 order (relative difference of the periodogram ~1e-12), so polished frequencies and damping
@@ -34,7 +35,7 @@ from dataclasses import replace
 
 import numpy as np
 import scipy.fft as sfft
-from scipy.signal import CZT, resample_poly
+from scipy.signal import resample_poly
 
 from maglev_ros.errors import UserError
 from maglev_ros.modal.bands import BandPlan, BandResult, _rescale_shapes, merge_band_results
@@ -251,8 +252,9 @@ class SpectrumSum:
 
 class BandDFT:
     """The DFT of an ``n``-row stream filtered by ``weights`` (l, m) at each column's band of
-    rfft bins (:class:`~maglev_ros.modal.polish.PolishBand`): per piece of rows a chirp-z
-    transform onto that band, turned by the piece's offset (exact integer phase) and summed."""
+    rfft bins (:class:`~maglev_ros.modal.polish.PolishBand`): per piece of rows and run of bins,
+    Bluestein's chirp-z (the band's bins as a convolution, by FFT) with every phase taken modulo
+    the record length in integers, turned by the piece's offset and summed."""
 
     def __init__(self, n: int, bands):
         self.n = int(n)
@@ -261,9 +263,23 @@ class BandDFT:
         self.weights = (np.column_stack([b.weights for b in self.bands]) if self.bands
                         else np.zeros((0, 0)))
         self.sums = [np.zeros(b.bin_hi - b.bin_lo, dtype=complex) for b in self.bands]
-        self.piece = min(DFT_PIECE, self.n)
+        self.piece = L = min(DFT_PIECE, self.n)
         self.buf = None
         self.b0 = 0
+        # the chirp convolution kernel, shared by every piece and run of L bins
+        self.nfft = sfft.next_fast_len(2 * L - 1)
+        kern = np.zeros(self.nfft, dtype=complex)
+        kern[:2 * L - 1] = np.conj(self._chirp(np.arange(-(L - 1), L, dtype=np.int64)))
+        self.kernel = sfft.fft(kern)
+        self.pre = self._chirp(np.arange(L, dtype=np.int64))
+
+    def _chirp(self, m: np.ndarray) -> np.ndarray:
+        """exp(-i pi m^2 / n), the phase reduced modulo 2n in integers."""
+        return np.exp(-1j * np.pi * ((m * m) % (2 * self.n)) / self.n)
+
+    def _turn(self, k: np.ndarray, u) -> np.ndarray:
+        """exp(-2 pi i k u / n), the phase reduced modulo n in integers."""
+        return np.exp(-2j * np.pi * ((k * u) % self.n) / self.n)
 
     def push(self, y: np.ndarray, final: bool = False) -> None:
         if not self.bands:
@@ -277,17 +293,20 @@ class BandDFT:
             self.b0 += L
 
     def _add(self, q: np.ndarray, offset: int) -> None:
-        n, L = self.n, self.piece
+        L = self.piece
         if q.shape[0] < L:                          # zeros add nothing to a DFT
             q = np.concatenate([q, np.zeros((L - q.shape[0], q.shape[1]))])
-        w = np.exp(-2j * np.pi / n)
+        u = np.arange(L, dtype=np.int64)
         for j, b in enumerate(self.bands):
-            # bins in runs of at most L: the transform's work arrays stay ~2L long
             for k0 in range(b.bin_lo, b.bin_hi, L):
-                k = np.arange(k0, min(k0 + L, b.bin_hi), dtype=np.int64)
-                part = CZT(L, k.size, w=w, a=np.exp(2j * np.pi * k0 / n))(q[:, j])
-                turn = np.exp(-2j * np.pi * ((k * offset) % n) / n)
-                self.sums[j][k0 - b.bin_lo:k0 - b.bin_lo + k.size] += turn * part
+                # X(k0 + d) = c(d) sum_u [q_u e^(-2 pi i k0 u / n) c(u)] conj(c(d - u)),
+                # c(m) = e^(-i pi m^2 / n): e^(-2 pi i d u / n) = c(d) c(u) conj(c(d - u))
+                a = sfft.fft(q[:, j] * self._turn(np.int64(k0), u) * self.pre, self.nfft)
+                conv = sfft.ifft(a * self.kernel)[L - 1:2 * L - 1]
+                m = min(L, b.bin_hi - k0)
+                k = np.arange(k0, k0 + m, dtype=np.int64)
+                part = self.pre[:m] * conv[:m]
+                self.sums[j][k0 - b.bin_lo:k0 - b.bin_lo + m] += self._turn(k, offset) * part
 
     def periodograms(self, m: int) -> list:
         out = [None] * m

@@ -36,7 +36,8 @@ from maglev_ros.errors import ContractError, UserError
 
 __all__ = ["Bound", "BOUNDS", "FLAT_PP", "HealthReport", "ExcludedChannel", "TopicScan",
            "quantity_of", "stamp_rate_hz", "rate_issue", "time_offset_issues", "sensor_map_issues",
-           "exclusion", "check_topics", "channel_data_to_si", "block_to_si", "report_lines"]
+           "exclusion", "check_topics", "check_feeds", "ArrayFeed", "channel_data_to_si", "block_to_si",
+           "report_lines"]
 
 _QUANTITY = {TOPIC_GUIDEWAY_ACCEL: "acceleration", TOPIC_VEHICLE_ACCEL: "acceleration",
              TOPIC_BODY_ACCEL: "acceleration", TOPIC_GUIDEWAY_DISP: "displacement",
@@ -439,6 +440,37 @@ def report_lines(report: Mapping) -> list[str]:
     return out
 
 
+class ArrayFeed:
+    """A topic read whole, as :func:`check_topics` is given it: (ChannelData as read, per block
+    stamp [ns], sample count and stated rate)."""
+
+    def __init__(self, cd, stamps, counts, rates):
+        self.cd, self.stamps, self.counts, self.rates = cd, stamps, counts, rates
+        self.channels, self.units = cd.channels, cd.units
+        self.sample_rate_hz = cd.sample_rate_hz
+
+    @property
+    def empty(self) -> bool:
+        return self.cd.n_samples == 0
+
+    def scan(self, scan: "TopicScan", factors, converted: bool) -> tuple[float, float]:
+        """Feed ``scan`` the SI values; the topic's (first, end) time."""
+        cd = self.cd
+        self.si_data = cd.data * np.asarray(factors) if converted else cd.data
+        scan.add(self.si_data)
+        return float(cd.time_s[0]), float(cd.time_s[-1]) + 1.0 / cd.sample_rate_hz
+
+    def result(self, si_units, factors, converted: bool, keep):
+        """The topic in SI without the excluded channels (``keep``: column indices or None)."""
+        cd = self.cd
+        if converted:
+            cd = dataclasses.replace(cd, units=tuple(si_units), data=self.si_data)
+        if keep is not None:
+            cd = dataclasses.replace(cd, channels=tuple(cd.channels[j] for j in keep),
+                                     units=tuple(cd.units[j] for j in keep), data=cd.data[:, keep])
+        return cd
+
+
 def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
                  sensor_map: bool = False,
                  other_intervals: Mapping[str, tuple[float, float]] | None = None) -> tuple[dict, HealthReport]:
@@ -450,6 +482,17 @@ def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
     that do not overlap in time are an error; ``other_intervals`` ({topic: (start_s, end_s)} of
     topics the verb does not read) only give warnings, as the verb does not combine them.
     """
+    return check_feeds(source, md, {t: ArrayFeed(*v) for t, v in topics.items()}, sensor_map,
+                       other_intervals)
+
+
+def check_feeds(source: str, md: Metadata | None, feeds: Mapping, sensor_map: bool = False,
+                other_intervals: Mapping[str, tuple[float, float]] | None = None) -> tuple[dict, HealthReport]:
+    """:func:`check_topics` on feeds: objects with ``channels``, ``units``, ``sample_rate_hz``,
+    ``stamps``/``counts``/``rates`` (per block), ``empty``, ``scan(TopicScan, factors,
+    converted) -> (first, end time)`` and ``result(si_units, factors, converted, keep)``, what the
+    verb gets for the topic (:class:`ArrayFeed`: the whole topic; ``maglev_ros.bag_windows``: a
+    topic left in the bag and read window by window)."""
     where = f"{source}: "
     errors: list[str] = []
     warnings: list[Issue] = []
@@ -458,16 +501,16 @@ def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
     out: dict = {}
     intervals = {}
     g0 = md.nominal_gap_m if md is not None else None
-    for topic, (cd, stamps, counts, rates) in topics.items():
-        if cd.n_samples == 0:
-            out[topic] = cd
+    for topic, feed in feeds.items():
+        if feed.empty:
+            out[topic] = feed.result(feed.units, None, False, None)
             continue
-        bad = rate_issue(topic, rates, stamps, counts)
+        bad = rate_issue(topic, feed.rates, feed.stamps, feed.counts)
         if bad is not None:
             errors.append(f"{topic}: {bad.message}")
             continue
         try:
-            cd, conv = channel_data_to_si(cd, where)
+            si, factors, conv = to_si_units(topic, feed.channels, feed.units, where)
         except ContractError as exc:
             errors.append(str(exc)[len(where):])
             continue
@@ -475,13 +518,14 @@ def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
             conversions.append(c)
             warnings.append(Issue("warning", topic, c.channel, None, "unit_converted",
                                   f"unit {c.unit!r} converted to {c.si_unit!r} (x{c.factor:.9g})"))
+        channels = tuple(feed.channels)
         if sensor_map:
-            errors += [f"{i.topic}: {i.message}" for i in sensor_map_issues(md, topic, cd.channels)]
-        scan = TopicScan(topic, cd.channels, cd.sample_rate_hz, g0)
-        scan.add(cd.data)
+            errors += [f"{i.topic}: {i.message}" for i in sensor_map_issues(md, topic, channels)]
+        scan = TopicScan(topic, channels, feed.sample_rate_hz, g0)
+        span = feed.scan(scan, factors, bool(conv))
         found = {i.channel: i for i in scan.issues()}
         conv_of = {c.channel: c for c in conv}
-        healthy = [c for c in cd.channels if c not in found]
+        healthy = [c for c in channels if c not in found]
         drop = []
         for ch, issue in found.items():
             msg = issue.message
@@ -494,12 +538,9 @@ def check_topics(source: str, md: Metadata | None, topics: Mapping[str, tuple],
                 warnings.append(dataclasses.replace(issue, message=msg + "; excluded from the analysis"))
             else:
                 errors.append(f"{topic} [{ch}]: {msg}; cannot be left out: {why_not}")
-        if drop:
-            keep = [j for j, c in enumerate(cd.channels) if c not in drop]
-            cd = dataclasses.replace(cd, channels=tuple(cd.channels[j] for j in keep),
-                                     units=tuple(cd.units[j] for j in keep), data=cd.data[:, keep])
-        out[topic] = cd
-        intervals[topic] = (float(cd.time_s[0]), float(cd.time_s[-1]) + 1.0 / cd.sample_rate_hz)
+        keep = [j for j, c in enumerate(channels) if c not in drop] if drop else None
+        out[topic] = feed.result(si, factors, bool(conv), keep)
+        intervals[topic] = span
     offset = time_offset_issues(intervals)
     errors += [f"{i.topic}: {i.message}" for i in offset]
     if other_intervals and intervals:

@@ -65,22 +65,56 @@ def read_inputs_checked(path: str):
     from maglev_ros.bag_reader import BagReader
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
-    from maglev_ros.irregularity.profile import magnet_channel_pairs
     if not Path(path).exists():
         raise UserError(f"{path}: no such bag")
     with BagReader(path) as r:
         md = r.metadata
-        for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
-            if topic not in r.topics:
-                kind = md.run_kind
-                raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
-                                    "vehicle accel, gap and position"
-                                    + (f"; run.kind is {kind!r}: no vehicle pass)"
-                                       if kind and kind != "pass" else ")"))
+        _need_topics(path, r)
         topics = (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION)
         read, health = r.read_checked(topics, sensor_map=True)
         # samples placed at the time they describe (optional acquisition delay in the metadata)
         accel, gap, pos = (read[t].delayed_by(md.acquisition_delay_s(t)) for t in topics)
+    return {"accel": accel, "gap": gap, "position": pos,
+            **_check_inputs(path, md, accel, gap, pos)}, health
+
+
+def open_inputs(r, path: str, window_s: float | None = None):
+    """(the inputs of :func:`read_inputs` for the open bag ``r``, with the accelerations and gaps
+    left in the bag: ``source`` reads them window by window
+    (:func:`maglev_ros.irregularity.streamed.profile_streamed`); the sensor-health report)."""
+    from maglev_ros.bag_windows import read_checked_windows
+    from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                     TOPIC_VEHICLE_POSITION)
+    from maglev_ros.irregularity.streamed import VehicleTopics
+    md = r.metadata
+    _need_topics(path, r)
+    read, health = read_checked_windows(r, [TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP],
+                                        [TOPIC_VEHICLE_POSITION], sensor_map=True)
+    accel, gap = read[TOPIC_VEHICLE_ACCEL], read[TOPIC_VEHICLE_GAP]
+    pos = read[TOPIC_VEHICLE_POSITION].delayed_by(md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
+    src = VehicleTopics(r, accel, gap, md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL),
+                        md.acquisition_delay_s(TOPIC_VEHICLE_GAP), pos, window_s)
+    return {"source": src, **_check_inputs(path, md, accel, gap, pos)}, health
+
+
+def _need_topics(path, r) -> None:
+    from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                     TOPIC_VEHICLE_POSITION)
+    md = r.metadata
+    for topic in (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION):
+        if topic not in r.topics:
+            kind = md.run_kind
+            raise ContractError(f"{path}: topic {topic} missing (the irregularity needs "
+                                "vehicle accel, gap and position"
+                                + (f"; run.kind is {kind!r}: no vehicle pass)"
+                                   if kind and kind != "pass" else ")"))
+
+
+def _check_inputs(path, md, accel, gap, pos) -> dict:
+    """Magnet offsets, nominal gap and channel pairs of the recording, after checking units and
+    channels (``accel``, ``gap``: anything with ``channels`` and ``units``)."""
+    from maglev_ros.contract import TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP, TOPIC_VEHICLE_POSITION
+    from maglev_ros.irregularity.profile import magnet_channel_pairs
     offsets = md.magnet_offsets_m
     if not offsets:
         raise ContractError(f"{path}: metadata key vehicle.magnet_offsets_m missing or empty")
@@ -93,8 +127,7 @@ def read_inputs_checked(path: str):
     for ch in ("position_m", "speed_mps"):
         if ch not in pos.channels:
             raise ContractError(f"{path}: {TOPIC_VEHICLE_POSITION}: channel {ch} missing")
-    return {"accel": accel, "gap": gap, "position": pos, "magnet_offsets_m": offsets,
-            "nominal_gap_m": g0, "channel_pairs": pairs}, health
+    return {"magnet_offsets_m": offsets, "nominal_gap_m": g0, "channel_pairs": pairs}
 
 
 def analyse(inputs: dict, args):
@@ -110,7 +143,12 @@ def analyse(inputs: dict, args):
                             magnet_length_m=args.magnet_length_m,
                             band_speed_mps=args.band_speed_mps,
                             max_wavelength_m=args.max_wavelength_m)
-    res = prof.fit(**inputs)
+    if "source" in inputs:       # a recording read window by window
+        from maglev_ros.irregularity.streamed import profile_streamed
+        res = profile_streamed(inputs["source"], prof, inputs["magnet_offsets_m"],
+                               inputs["nominal_gap_m"], inputs["channel_pairs"])
+    else:
+        res = prof.fit(**inputs)
     spec, comp, notes = None, [], []
     try:
         spec = profile_psd(res.position_m, res.irregularity_m, confidence=args.confidence,
@@ -213,16 +251,21 @@ def write_plot(path: str, res, spec, comp, batch=None) -> None:
 
 
 def run(args) -> int:
+    from maglev_ros.bag_reader import BagReader
     # the outputs can be written: checked before the analysis, not after
     outputs.check_file(args.out, "--out")
     if args.json_out is not None:
         outputs.check_file(args.json_out, "--json")
     if args.plot is not None:
         outputs.check_figure(args.plot, "--plot")
-    inputs, health = read_inputs_checked(args.bag)
-    for line in health.lines():
-        print(f"maglev-ros irregularity: {line}", file=sys.stderr)
-    res, spec, comp, rms, notes = analyse(inputs, args)
+    if not Path(args.bag).exists():
+        raise UserError(f"{args.bag}: no such bag")
+    # accelerations and gaps stay in the bag, read window by window: memory stays bounded
+    with BagReader(args.bag) as r:
+        inputs, health = open_inputs(r, args.bag)
+        for line in health.lines():
+            print(f"maglev-ros irregularity: {line}", file=sys.stderr)
+        res, spec, comp, rms, notes = analyse(inputs, args)
     # CSV, JSON and plot replace the earlier set together, or none of them does
     with outputs.Batch() as batch:
         write_csv(args.out, res, rms, args.bag, batch)

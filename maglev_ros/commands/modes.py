@@ -95,8 +95,7 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
     each came from. ``scale_channels`` None: divide each channel by its std only when the
     channels' units differ."""
     from maglev_ros.bag_reader import BagReader
-    from maglev_ros.modal.bands import identify_bands, plan_bands
-    from maglev_ros.modal.free_decay import select_free_decay
+    from maglev_ros.bag_windows import read_checked_windows
 
     with BagReader(path) as r:
         if TOPIC_ACCEL not in r.topics:
@@ -104,10 +103,77 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
                             f"accelerations (topics: {', '.join(sorted(r.topics)) or 'none'})")
         md = r.metadata
         kind = md.run_kind if md is not None else "ambient"
-        # a pass places the sensors on their spans (free-decay window): that needs the sensor map
-        read, health = r.read_checked([TOPIC_ACCEL] + ([TOPIC_POSITION] if TOPIC_POSITION in r.topics else []),
-                                      sensor_map=kind == "pass")
-        cd, pos = read[TOPIC_ACCEL], read.get(TOPIC_POSITION)
+        # a pass places the sensors on their spans (free-decay window): that needs the sensor map;
+        # the accelerations stay in the bag, read window by window: memory stays bounded
+        read, health = read_checked_windows(
+            r, [TOPIC_ACCEL], [TOPIC_POSITION] if TOPIC_POSITION in r.topics else [],
+            sensor_map=kind == "pass")
+        out = _identify_streamed(path, r, md, kind, read[TOPIC_ACCEL], read.get(TOPIC_POSITION),
+                                 fmin_hz, fmax_hz, block_rows, max_order, decimate_to_hz, window,
+                                 scale_channels)
+    return BagModes(out.result, out.info, out.plan, health)
+
+
+def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows, max_order,
+                       decimate_to_hz, window, scale_channels) -> BagModes:
+    """identify_modes' processing of the accelerations ``acc`` (a CheckedTopic of the open bag
+    ``r``): every pass reads them in windows (:mod:`maglev_ros.bag_windows`) and the
+    identification sums over chunks (:mod:`maglev_ros.modal.chunked`), with the whole-array
+    path's results (:func:`_identify_whole`)."""
+    from maglev_ros.bag_windows import iter_windows, read_window
+    from maglev_ros.modal.bands import plan_bands
+    from maglev_ros.modal.chunked import TopicChunks, identify_bands_chunked
+    from maglev_ros.modal.free_decay import exit_time_s, position_window_streamed
+
+    fs = float(acc.sample_rate_hz)
+    channels, units = acc.channels, acc.units
+    n = acc.n_samples
+    use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
+    end = _span_end_m(md, channels) if md is not None else None
+    if use_decay and not (pos is not None and "position_m" in pos.channels and end is not None):
+        # the envelope rule needs each channel's median over the record: read it whole
+        cd = read_window(r, acc, -np.inf, np.inf)
+        return _identify_whole(path, cd, md, kind, pos, fmin_hz, fmax_hz, block_rows, max_order,
+                               decimate_to_hz, window, scale_channels)
+    info = {"bag": str(path), "topic": TOPIC_ACCEL, "run_kind": kind, "fs_hz": fs,
+            "n_samples": int(n), "channels": list(channels)}
+    start, stop = 0, n
+    if use_decay:
+        t_first = acc.first_time_s
+        t_exit = exit_time_s(pos.channel("position_m"), pos.time_s - t_first, end,
+                             min(md.magnet_offsets_m or (0.0,)))
+        win = position_window_streamed((w.time_s - t_first for w in iter_windows(r, acc)), fs,
+                                       t_exit)
+        info["free_decay_window"] = win.to_dict()
+        start, stop = win.start_index, win.stop_index
+    if scale_channels is None:
+        # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
+        # mixed units have no common scale, so each channel is brought to unit std
+        scale_channels = len(set(units)) > 1
+        unit = units[0] if units else "?"
+        scale_src = ("channels' units differ" if scale_channels else
+                     f"all channels in {unit}: recorded amplitudes kept")
+    else:
+        scale_src = "user"
+    try:
+        plan = plan_bands(fs, stop - start, len(channels), stationary=not use_decay,
+                          fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
+                          max_order=max_order, decimate_to_hz=decimate_to_hz,
+                          scale_channels=scale_channels, scale_source=scale_src)
+    except UserError as e:
+        raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
+    info["settings"] = plan.to_dict()
+    res, _ = identify_bands_chunked(TopicChunks(r, acc, start, stop), fs, plan, channels)
+    return BagModes(res, info, plan)
+
+
+def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_rows=None,
+                    max_order=None, decimate_to_hz=None, window="auto",
+                    scale_channels=None) -> BagModes:
+    """identify_modes on the whole topic ``cd`` in memory (as read, health-checked)."""
+    from maglev_ros.modal.bands import identify_bands, plan_bands
+    from maglev_ros.modal.free_decay import select_free_decay
+
     fs = float(cd.sample_rate_hz)
     data = np.asarray(cd.data, dtype=float)
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
@@ -144,7 +210,7 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
     res, _ = identify_bands(data, fs, plan, cd.channels)
-    return BagModes(res, info, plan, health)
+    return BagModes(res, info, plan)
 
 
 def run(args) -> int:

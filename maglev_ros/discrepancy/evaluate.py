@@ -290,14 +290,15 @@ def _levels_of(rd: RecData, pred: dict) -> dict:
     return out
 
 
-def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict, dict]:
-    """Band powers, prediction and rail transmissibilities of the physics-only prediction (cached
-    per physics spec and recording)."""
+def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict]:
+    """Band powers and rail transmissibilities of the physics-only prediction (cached per physics
+    spec and recording; the prediction itself is not kept: a few MB per entry, hundreds of
+    entries in a diagnosis)."""
     phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
     key = (phys, id(rd))
     hit = _PT_CACHE.get(key)
     if hit is not None and hit[0] is rd:
-        return hit[1], hit[2], hit[3]
+        return hit[1], hit[2]
     pred = predict(phys, rd.rec)
     pt = {n: band_powers(ch.time_s, pred[n] - reference_value(rd.rec, n), ch.sample_rate_hz, rd.grid)
           for n, ch in rd.rec.channels.items()}
@@ -305,15 +306,15 @@ def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict, dict]:
     st.update(_levels_of(rd, pred))
     if len(_PT_CACHE) > 512:
         _PT_CACHE.clear()
-    _PT_CACHE[key] = (rd, pt, pred, st)
-    return pt, pred, st
+    _PT_CACHE[key] = (rd, pt, st)
+    return pt, st
 
 
 def model_transmissibility(spec: ModelSpec, rd: RecData) -> dict:
     """The twin's squared gap-to-rail transmissibility per magnet pair of ``rd`` and its gap frame
     means (keyed by the gap channel), with the spec's sensor errors and dropouts when they touch
     those channels."""
-    _, _, st = _twin_powers(spec, rd)
+    _, st = _twin_powers(spec, rd)
     touched = {e[0] for e in spec.sensor_error} | {d[0] for d in spec.dropouts}
     if any(set(p) & touched for p in rd.sens_pairs.values()):
         pred = predict(spec, rd.rec)
@@ -324,7 +325,7 @@ def model_transmissibility(spec: ModelSpec, rd: RecData) -> dict:
 
 
 def model_powers(spec: ModelSpec, rd: RecData) -> dict:
-    pt, pred_phys, _ = _twin_powers(spec, rd)
+    pt, _ = _twin_powers(spec, rd)
     touched = {e[0] for e in spec.sensor_error} | {d[0] for d in spec.dropouts}
     pt = dict(pt)
     if touched & set(rd.rec.channels):

@@ -26,6 +26,7 @@ pieces, without changing the twin files:
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping
 
@@ -282,8 +283,11 @@ def air_spring_force_law(terms) -> Callable[[np.ndarray, np.ndarray], np.ndarray
     return force
 
 
-_CACHE: dict = {}
-_CACHE_MAX = 256
+# simulations by (physics spec, recording, rate), least recently used dropped first: an entry is
+# the whole PassResult (~90 columns at the output rate, 18 MB for a 12.7 s pass at 2 kHz), and a
+# diagnosis simulates ~240 specs but reuses almost only the last few (keeping them all took 4 GB)
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_MAX_BYTES = 256 * 2 ** 20
 
 
 def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> PassResult | None:
@@ -297,6 +301,7 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     key = (phys, id(rec), fs_out_hz)
     hit = _CACHE.get(key)
     if hit is not None and hit[0] is rec:
+        _CACHE.move_to_end(key)
         return hit[1]
     fs = fs_out_hz or max(c.sample_rate_hz for c in rec.channels.values())
     sensors = {n: c.position_m for n, c in rec.channels.items()
@@ -320,10 +325,15 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     res = PassResult.concat(parts)
     if tau:
         res = replace(res, time_s=res.time_s + tau)
-    if len(_CACHE) >= _CACHE_MAX:
-        _CACHE.clear()
     _CACHE[key] = (rec, res)
+    size = sum(_result_bytes(r) for _, r in _CACHE.values())
+    while len(_CACHE) > 1 and size > _CACHE_MAX_BYTES:
+        size -= _result_bytes(_CACHE.popitem(last=False)[1][1])
     return res
+
+
+def _result_bytes(res: PassResult) -> int:
+    return sum(v.nbytes for v in vars(res).values() if isinstance(v, np.ndarray))
 
 
 def reference_value(rec: Recording, name: str) -> float:

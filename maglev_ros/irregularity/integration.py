@@ -107,11 +107,11 @@ def _taper(n: int, fs_hz: float, highpass_hz: float) -> np.ndarray:
 
 
 def _apply_fd(x: np.ndarray, fs_hz: float, highpass_hz: float, order: int,
-              integrate_twice: bool) -> np.ndarray:
+              integrate_twice: bool, mean: float | None = None) -> np.ndarray:
     n = x.size
     npad, nfft = _pad_len(n, fs_hz, highpass_hz)
     buf = np.zeros(nfft)
-    buf[npad:npad + n] = (x - np.mean(x)) * _taper(n, fs_hz, highpass_hz)
+    buf[npad:npad + n] = (x - (np.mean(x) if mean is None else mean)) * _taper(n, fs_hz, highpass_hz)
     spec = sfft.rfft(buf)
     f = sfft.rfftfreq(nfft, 1.0 / fs_hz)
     h = highpass_gain(f, highpass_hz, order)
@@ -215,7 +215,8 @@ def double_integrate(time_s: np.ndarray, accel_mps2: np.ndarray, fs_hz: float,
                      channel: str = "accel", bias_sigma: float = 5.0,
                      bias_floor_mps2: float = 2e-3,
                      check_dropouts: bool = True,
-                     plus_highpassed: np.ndarray | None = None) -> IntegrationResult:
+                     plus_highpassed: np.ndarray | None = None,
+                     segment_means=None) -> IntegrationResult:
     """Displacement [m] from acceleration [m/s^2], band-limited above ``highpass_hz``.
 
     ``bad`` marks extra samples to exclude (e.g. a dropout in a companion channel). Segments
@@ -226,6 +227,11 @@ def double_integrate(time_s: np.ndarray, accel_mps2: np.ndarray, fs_hz: float,
     ``plus_highpassed`` (same length) is high-passed with the same H(f), taper and segments and
     added to the displacement; the inertial method passes the gap change here so that
     ``z_m + gap - g0`` carries one band exactly. Non-finite samples in it count as bad.
+
+    ``segment_means(i0, i1)``: (accel mean, plus mean) to remove from the clean segment
+    ``i0 .. i1-1`` instead of its own means, or None: a caller integrating a piece of a longer
+    segment gives the whole segment's (the mean's tapered step at the segment's true ends
+    reaches ~4/f_c into it).
     """
     if not (highpass_hz > 0):
         raise ValueError(f"highpass_hz must be > 0, got {highpass_hz}")
@@ -260,9 +266,11 @@ def double_integrate(time_s: np.ndarray, accel_mps2: np.ndarray, fs_hz: float,
                 "accel_bias", channel,
                 f"{channel}: constant offset {b:+.4g} m/s^2 (standard error {se:.2g}) removed before "
                 f"integration", t[i0], t[i1 - 1], b))
-        z = _apply_fd(seg, fs_hz, highpass_hz, order, True)
+        means = None if segment_means is None else segment_means(i0, i1)
+        z = _apply_fd(seg, fs_hz, highpass_hz, order, True, None if means is None else means[0])
         if plus_highpassed is not None:
-            z = z + _apply_fd(plus[i0:i1], fs_hz, highpass_hz, order, False)
+            z = z + _apply_fd(plus[i0:i1], fs_hz, highpass_hz, order, False,
+                              None if means is None else means[1])
         z[:nedge] = np.nan
         z[z.size - nedge:] = np.nan
         out[i0:i1] = z

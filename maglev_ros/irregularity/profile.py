@@ -421,7 +421,7 @@ class InertialProfiler:
         return lam if self.min_wavelength_m is None else max(lam, float(self.min_wavelength_m))
 
     # -- time domain -> samples at positions -------------------------------------------------
-    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k):
+    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k, segment_means=None):
         """Return (x_m, r_m, warnings, bias) for the valid samples of one magnet (time order)."""
         warns = []
         gbad, gw = detect_dropouts(t, g, fs, spec.gap_channel)
@@ -432,7 +432,8 @@ class InertialProfiler:
         res = double_integrate(t, a, fs, self.highpass_hz, order=self.filter_order,
                                edge_s=self.edge_s, bad=gbad, channel=spec.accel_channel,
                                bias_sigma=self.bias_sigma, bias_floor_mps2=self.bias_floor_mps2,
-                               plus_highpassed=np.where(gbad, np.nan, dg))
+                               plus_highpassed=np.where(gbad, np.nan, dg),
+                               segment_means=segment_means)
         warns += list(res.warnings)
         r = res.displacement_m
         x = xref + spec.offset_m
@@ -443,6 +444,14 @@ class InertialProfiler:
         if t.size < 4:
             raise UserError("/testline/vehicle/accel: fewer than 4 samples")
         fs = _rate(accel)
+        xref, v = self.reference_motion(t, position)
+        tg = np.asarray(gap.time_s, float)
+        same = tg.size == t.size and np.allclose(tg, t, atol=0.25 / fs)
+        return t, fs, xref, v, tg, same
+
+    def reference_motion(self, t, position):
+        """(x, |speed|) of the reference point at times ``t`` from the position channels; speed
+        NaN where ``t`` is more than 1.5 position samples outside the position record."""
         tp = np.asarray(position.time_s, float)
         pos = _channel(position, "position_m", "/testline/vehicle/position")
         spd = _channel(position, "speed_mps", "/testline/vehicle/position")
@@ -459,20 +468,22 @@ class InertialProfiler:
         xref = xref + np.where(t > tp[-1], (t - tp[-1]) * spd[-1], 0.0) \
             + np.where(t < tp[0], (t - tp[0]) * spd[0], 0.0)
         v[outside] = np.nan              # never map samples without a position
-        tg = np.asarray(gap.time_s, float)
-        same = tg.size == t.size and np.allclose(tg, t, atol=0.25 / fs)
-        return t, fs, xref, v, tg, same
+        return xref, v
 
-    def _gap_on(self, t, tg, same, gcol):
+    def _gap_on(self, t, tg, same, gcol, step_s=None, span_s=None):
+        """The gap channel at the accel times ``t``. ``step_s`` (the gap's median sample step)
+        and ``span_s`` (its first and last time) default to those of ``tg``: a caller holding a
+        piece of the gap record gives the whole record's."""
         if same:
             return gcol
         gi = np.interp(t, tg, gcol)
         # mark samples whose nearest gap samples are far away (gap dropout in time)
         j = np.clip(np.searchsorted(tg, t), 1, tg.size - 1)
         dist = np.minimum(np.abs(tg[j] - t), np.abs(t - tg[j - 1]))
-        fsg = 1.0 / np.median(np.diff(tg))
+        fsg = 1.0 / (np.median(np.diff(tg)) if step_s is None else step_s)
         gi[dist > 1.5 / fsg] = np.nan
-        gi[(t < tg[0]) | (t > tg[-1])] = np.nan
+        lo, hi = (tg[0], tg[-1]) if span_s is None else span_s
+        gi[(t < lo) | (t > hi)] = np.nan
         return gi
 
     def _deflection(self, deflection, t, xm, spec, k):
@@ -512,12 +523,13 @@ class InertialProfiler:
         return np.where(v < self.stop_speed_mps, v, vs)
 
     def samples(self, accel, gap, position, magnet_offsets_m, nominal_gap_m,
-                deflection=None, channel_pairs=None):
+                deflection=None, channel_pairs=None, segment_means=None):
         """Per-magnet position samples before binning (used by fit and the streaming class).
 
         Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs); the speed
         is the one the band is judged by (:meth:`band_speed_series`). Needs a fixed corner (see
-        :meth:`resolve`)."""
+        :meth:`resolve`). ``segment_means``: per magnet, the ``segment_means`` hook of
+        :func:`~maglev_ros.irregularity.integration.double_integrate` (a piece of a record)."""
         if self.highpass_hz is None:
             raise UserError("highpass_hz: samples() needs a fixed corner (resolve() sets it)")
         specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
@@ -528,7 +540,8 @@ class InertialProfiler:
             a = _channel(accel, spec.accel_channel, "/testline/vehicle/accel")
             g = self._gap_on(t, tg, same, _channel(gap, spec.gap_channel, "/testline/vehicle/gap"))
             w = self._deflection(deflection, t, xref + spec.offset_m, spec, k)
-            x, r, wk, b = self._magnet_samples(t, a, g, xref, v, spec, float(nominal_gap_m), fs, w)
+            x, r, wk, b = self._magnet_samples(t, a, g, xref, v, spec, float(nominal_gap_m), fs, w,
+                                               None if segment_means is None else segment_means[k])
             out.append((x, r, v))
             warns += wk
             biases.append(b)

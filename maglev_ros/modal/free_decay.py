@@ -63,6 +63,53 @@ def rms_envelope(data: np.ndarray, fs_hz: float, window_s: float = 0.1) -> np.nd
     return np.sqrt((c[hi] - c[lo]) / np.maximum(hi - lo, 1))
 
 
+def exit_time_s(position_m, position_time_s, span_end_m: float, rear_offset_m: float = 0.0) -> float:
+    """First time the rearmost magnet (reference position + ``rear_offset_m``) is beyond
+    ``span_end_m``, interpolated between position samples."""
+    pos = np.asarray(position_m, dtype=float) + rear_offset_m
+    past = np.flatnonzero(pos > span_end_m)
+    if past.size == 0:
+        raise UserError(f"position: the vehicle never leaves the span (end {span_end_m} m)")
+    k = past[0]
+    if k == 0:
+        return position_time_s[0]
+    p0, p1 = pos[k - 1], pos[k]
+    a = (span_end_m - p0) / (p1 - p0) if p1 != p0 else 1.0
+    return position_time_s[k - 1] + a * (position_time_s[k] - position_time_s[k - 1])
+
+
+def position_window_streamed(time_chunks, fs_hz: float, t_exit_s: float, margin_s: float = 0.1,
+                             min_length_s: float = 0.5) -> FreeDecayWindow:
+    """:func:`select_free_decay`'s position window (``noise_factor`` 0, the default) from the
+    record's sample times given in chunks (seconds after the first sample), without holding
+    them: the start is the first sample at or after ``t_exit_s + margin_s``."""
+    thr = t_exit_s + margin_s
+    n = start = 0
+    min_n = int(round(min_length_s * fs_hz))
+    marks = {}                         # index -> time, for the window's two ends
+    last = None
+    for t in time_chunks:
+        t = np.asarray(t, dtype=float)
+        if not t.size:
+            continue
+        start += int(np.searchsorted(t, thr))
+        for i in (start, start + min_n - 1):
+            if n <= i < n + t.size:
+                marks[i] = float(t[i - n])
+        n += t.size
+        last = float(t[-1])
+    if start >= n - 1:
+        raise UserError("data: no samples after the vehicle left the span; expected a record that "
+                        "continues after the pass")
+    stop = n
+    if (stop - start) / fs_hz < min_length_s:
+        stop = min(n, start + min_n)
+    if stop - start < 8:
+        raise UserError("data: free decay after the pass is too short to identify from")
+    t_stop = last if stop == n else marks[stop - 1]
+    return FreeDecayWindow(start, stop, marks[start], t_stop, "position")
+
+
 def select_free_decay(data: np.ndarray, fs_hz: float, *, time_s: np.ndarray | None = None,
                       position_m: np.ndarray | None = None,
                       position_time_s: np.ndarray | None = None,
@@ -79,17 +126,7 @@ def select_free_decay(data: np.ndarray, fs_hz: float, *, time_s: np.ndarray | No
     if position_m is not None:
         if span_end_m is None or position_time_s is None:
             raise UserError("position: expected span_end_m and position_time_s with position_m")
-        pos = np.asarray(position_m, dtype=float) + rear_offset_m
-        past = np.flatnonzero(pos > span_end_m)
-        if past.size == 0:
-            raise UserError(f"position: the vehicle never leaves the span (end {span_end_m} m)")
-        k = past[0]
-        if k > 0:  # interpolate the crossing time
-            p0, p1 = pos[k - 1], pos[k]
-            a = (span_end_m - p0) / (p1 - p0) if p1 != p0 else 1.0
-            t_exit = position_time_s[k - 1] + a * (position_time_s[k] - position_time_s[k - 1])
-        else:
-            t_exit = position_time_s[0]
+        t_exit = exit_time_s(position_m, position_time_s, span_end_m, rear_offset_m)
         start = int(np.searchsorted(t, t_exit + margin_s))
         method = "position"
     else:

@@ -92,6 +92,21 @@ def _pole_response(freq_hz: np.ndarray, f_hz: float, zeta: float, fs_hz: float,
     return g, dlf, dlz
 
 
+@dataclass(frozen=True, eq=False)
+class PolishBand:
+    """What one mode's polish reads from the record: the rfft bins ``bin_lo .. bin_hi - 1`` (at
+    ``freq_hz``) of ``y @ weights`` (the modal filter of the modes ``modes`` in its band)."""
+    bin_lo: int
+    bin_hi: int
+    freq_hz: np.ndarray
+    weights: np.ndarray
+    modes: tuple
+
+    @property
+    def bins(self) -> slice:
+        return slice(self.bin_lo, self.bin_hi)
+
+
 class WhittlePolish:
     """Whittle maximum-likelihood refinement of selected poles (see the module docstring).
 
@@ -115,23 +130,33 @@ class WhittlePolish:
         ``damping`` (m,) SSI estimates; ``shapes`` (m, l) complex SSI shapes; ``std_freq_hz`` (m,)
         SSI std (for the safeguard). Returns one :class:`PolishedPole` per mode."""
         y = np.asarray(y, dtype=float)
+        n = y.shape[0]
+        bands = self.bands(n, fs_hz, freq_hz, damping, shapes)
+        pers = [None if b is None else np.abs(np.fft.rfft(y @ b.weights)[b.bins]) ** 2 / n
+                for b in bands]
+        return self.fit_periodograms(bands, pers, n, fs_hz, freq_hz, damping, std_freq_hz)
+
+    def bands(self, n: int, fs_hz: float, freq_hz, damping, shapes) -> list:
+        """Per mode the periodogram ordinates its fit needs (:class:`PolishBand`: the rfft bins of
+        an ``n``-sample record and the spatial filter), or None where it is not polished."""
         freq = np.asarray(freq_hz, dtype=float)
         zeta = np.asarray(damping, dtype=float)
         m = freq.size
         if m == 0:
             return []
-        n = y.shape[0]
         phi = np.array([real_mode_shape(s) for s in np.asarray(shapes)]).T      # (l, m)
-        fgrid = np.fft.rfftfreq(n, 1.0 / fs_hz)
-        sstd = np.full(m, np.nan) if std_freq_hz is None else np.asarray(std_freq_hz, float)
+        df = 1.0 / (n * (1.0 / fs_hz))             # np.fft.rfftfreq's step, to the same bits
+        n_f = n // 2 + 1
         out = []
         for r in range(m):
             half = min(self.band_halfwidths * max(zeta[r], 1e-4) * freq[r], self.max_band_frac * freq[r])
-            lo, hi = max(freq[r] - half, fgrid[1]), min(freq[r] + half, 0.5 * fs_hz * 0.98)
-            sel = np.flatnonzero((fgrid >= lo) & (fgrid <= hi))
-            keep = PolishedPole(freq[r], zeta[r], sstd[r], np.nan, False)
+            lo, hi = max(freq[r] - half, 1 * df), min(freq[r] + half, 0.5 * fs_hz * 0.98)
+            # the bins of rfftfreq(n) in [lo, hi], evaluated as rfftfreq does (k * step)
+            k = np.arange(max(int(lo / df) - 2, 0), min(int(hi / df) + 3, n_f))
+            fk = k * df
+            sel = k[(fk >= lo) & (fk <= hi)]
             if sel.size < self.min_bins:
-                out.append(keep)
+                out.append(None)
                 continue
             # neighbours whose peak reaches into the band are modelled (and filtered) too
             band = [s for s in range(m)
@@ -140,11 +165,28 @@ class WhittlePolish:
                 band.append(r)
             phib = phi[:, band]
             if np.linalg.cond(phib) > 1e6:
+                out.append(None)
+                continue
+            out.append(PolishBand(int(sel[0]), int(sel[-1]) + 1, sel * df,
+                                  np.linalg.pinv(phib)[band.index(r)], tuple(band)))
+        return out
+
+    def fit_periodograms(self, bands, pers, n: int, fs_hz: float, freq_hz, damping,
+                         std_freq_hz=None) -> list:
+        """The fit of :meth:`fit` from each mode's periodogram ordinates ``pers[r]``
+        (``|DFT(y @ bands[r].weights)|^2 / n`` on ``bands[r].bins``; None where ``bands[r]`` is)."""
+        freq = np.asarray(freq_hz, dtype=float)
+        zeta = np.asarray(damping, dtype=float)
+        m = freq.size
+        sstd = np.full(m, np.nan) if std_freq_hz is None else np.asarray(std_freq_hz, float)
+        out = []
+        for r in range(m):
+            keep = PolishedPole(freq[r], zeta[r], sstd[r], np.nan, False)
+            b = bands[r]
+            if b is None:
                 out.append(keep)
                 continue
-            w = np.linalg.pinv(phib)[band.index(r)]
-            q = y @ w
-            per = np.abs(np.fft.rfft(q)[sel]) ** 2 / n
+            per = np.asarray(pers[r], dtype=float)
             # Daniell averaging of d adjacent ordinates (still >= ordinates_per_halfwidth per
             # half-power half-width): the mean of d exponentials is Gamma(d), whose Whittle
             # likelihood is d x the single-ordinate one; d times fewer model evaluations
@@ -152,9 +194,9 @@ class WhittlePolish:
             nb = per.size // d
             if nb < self.min_bins:
                 d, nb = 1, per.size
-            fb = fgrid[sel][:nb * d].reshape(nb, d).mean(axis=1)
+            fb = b.freq_hz[:nb * d].reshape(nb, d).mean(axis=1)
             pb = per[:nb * d].reshape(nb, d).mean(axis=1)
-            res = self._fit_band(fb, pb, fs_hz, r, band, freq, zeta, d)
+            res = self._fit_band(fb, pb, fs_hz, r, list(b.modes), freq, zeta, d)
             if res is None:
                 out.append(keep)
                 continue

@@ -378,6 +378,11 @@ class SSICov:
         pol = WhittlePolish().fit(y, fs, [m.frequency_hz for m in res.modes],
                                   [m.damping_ratio for m in res.modes], np.array(res.complex_shapes),
                                   [m.std_frequency_hz for m in res.modes])
+        return self.apply_polish(res, pol)
+
+    @staticmethod
+    def apply_polish(res, pol):
+        """``res`` with the polished poles ``pol`` (one :class:`PolishedPole` per mode) in place."""
         modes = []
         for m, p in zip(res.modes, pol):
             if p.ok:

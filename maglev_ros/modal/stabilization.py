@@ -269,6 +269,16 @@ class Spectrum:
                 "singular_values": self.singular_values.tolist()}
 
 
+#: segments x samples x channels transformed at once by sv_spectrum (its working arrays are a
+#: few times this in float64 / complex: ~10 MB each, whatever the segment length or channels)
+SPECTRUM_GROUP_VALUES = 1_000_000
+
+
+def spectrum_group(nperseg: int, n_channels: int) -> int:
+    """Segments per batch of :func:`sv_spectrum` (1..64)."""
+    return max(1, min(64, SPECTRUM_GROUP_VALUES // max(nperseg * n_channels, 1)))
+
+
 def sv_spectrum(data: np.ndarray, fs_hz: float, nperseg: int = 1024, n_sv: int = 3) -> Spectrum:
     """Welch cross-PSD matrix (Hann, 50 % overlap) and its first ``n_sv`` singular values."""
     x = np.asarray(data, dtype=float)
@@ -282,8 +292,9 @@ def sv_spectrum(data: np.ndarray, fs_hz: float, nperseg: int = 1024, n_sv: int =
     l = x.shape[1]
     nf = nperseg // 2 + 1
     s = np.zeros((nf, l, l), dtype=complex)
-    for i0 in range(0, starts.size, 64):
-        seg = np.stack([x[s0:s0 + nperseg] for s0 in starts[i0:i0 + 64]]) * win[None, :, None]
+    g = spectrum_group(nperseg, l)
+    for i0 in range(0, starts.size, g):
+        seg = np.stack([x[s0:s0 + nperseg] for s0 in starts[i0:i0 + g]]) * win[None, :, None]
         f = np.fft.rfft(seg, axis=1).transpose(1, 2, 0)          # (F, l, segs)
         s += np.matmul(f, f.conj().transpose(0, 2, 1))            # batched l x l per line
     s *= 2.0 * scale / max(starts.size, 1)

@@ -233,23 +233,20 @@ def test_irregularity_write_failing_midway_keeps_csv_json_and_plot(bags, tmp_pat
     assert snapshot(d) == before
 
 
-def test_irregularity_undefined_correlation_is_null_and_the_run_succeeds(bags, tmp_path, capsys):
+def test_irregularity_refusing_a_silent_magnet_keeps_the_earlier_outputs(bags, tmp_path, capsys):
     """Reproduced: a silent magnet made a correlation NaN; the JSON writer refused it midway after
-    the CSV had been overwritten, leaving a truncated JSON and a traceback."""
+    the CSV had been overwritten, leaving a truncated JSON and a traceback. The sensor-health check
+    now refuses the recording (the magnet's only accelerometer is flat) in one line, before any
+    output is touched."""
     csv_p, js = tmp_path / "irr.csv", tmp_path / "irr.json"
     rc, _, err = run_cli(["irregularity", bags.pass_, "--out", csv_p, "--json", js], capsys)
     assert rc == 0, err
+    before = snapshot(tmp_path)
     rc, _, err = run_cli(["irregularity", bags.flat, "--out", csv_p, "--json", js], capsys)
-    assert rc == 0, err
-
-    def refuse(c):
-        raise ValueError(f"non-standard JSON constant {c}")
-    doc = json.loads(js.read_text(), parse_constant=refuse)
-    with_m2 = [a for a in doc["profile"]["agreement"] if "M2" in (a["a"], a["b"])]
-    assert with_m2 and all(a["correlation"] is None for a in with_m2)
-    assert [ln for ln in csv_p.read_text().splitlines() if not ln.startswith("#")][0] == \
-        "position_m,irregularity_m"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["irr.csv", "irr.json"]
+    assert rc == 1 and "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert "M2A" in line and "flat" in line
+    assert snapshot(tmp_path) == before
 
 
 def test_update_write_failing_midway_keeps_earlier_outputs_and_removes_a_new_plot_dir(bags, tmp_path, capsys):

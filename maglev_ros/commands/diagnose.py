@@ -54,16 +54,17 @@ def _diagnose(args, progress):
         if ambient.kind != "ambient":
             raise UserError(f"{args.ambient}: run.kind: expected 'ambient' for --ambient, got {ambient.kind!r}")
     out = Path(args.out)
-    recs = [*passes, *([ambient] if ambient is not None else [])]
-    for r in recs:
-        for line in r.health.lines():
+    # what the sensor-health check did (recordings read from bags carry it)
+    health = [h for h in (getattr(r, "health", None) for r in (*passes, ambient)) if h is not None]
+    for h in health:
+        for line in h.lines():
             print(f"maglev-ros diagnose: {line}", file=sys.stderr)
     d = diagnose(passes, ambient, progress=progress)
-    d.report["health"] = [r.health.to_dict() for r in recs]      # what the sensor-health check did
+    doc = {**d.to_dict(), "health": [h.to_dict() for h in health]}
     # report.json and report.html replace the earlier pair together, or neither does
     with outputs.Batch() as batch:
         batch.make_dir(out, "--out")
-        batch.write_json(out / "report.json", d.to_dict(), indent=1, option="--out")
+        batch.write_json(out / "report.json", doc, indent=1, option="--out")
         if args.no_html:
             batch.remove(out / "report.html")    # an earlier report's HTML would not match the JSON
         else:

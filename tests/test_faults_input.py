@@ -62,8 +62,14 @@ class _Node:
 
 
 class _Diag:
+    def __init__(self):
+        self.checks = []
+
     def add_check(self, f):
-        self.check = f
+        self.checks.append(f)
+
+    def check(self):                # the block gate's own check (dropped blocks)
+        return self.checks[0]()
 
 
 def _msg(channels, units, data, rate=100.0):
@@ -125,3 +131,20 @@ def test_a_damaged_bag_file_is_one_line_before_any_work(tmp_path, damage, verb, 
     assert main(argv) == 1
     _one_line(capsys.readouterr().err, str(bag), "cannot open bag")
     assert not (tmp_path / "r.csv").exists() and not (tmp_path / "d").exists()
+
+
+def test_nodes_report_a_flat_lined_channel_on_diagnostics():
+    import numpy as np
+    from maglev_ros.nodes._common import BlockGate
+    node, diag = _Node(), _Diag()
+    gate = BlockGate(node, diag)
+    checks = diag.checks
+    rng = np.random.default_rng(1)
+    for k in range(40):                         # 4 s at 1 kHz: G1 live, G2 flat-lined
+        x = np.column_stack([rng.normal(0, 0.05, 100), np.full(100, 0.0)])
+        assert gate.block(_msg(("G1LV", "G2LV"), ("m/s^2", "m/s^2"), x, rate=1000.0),
+                          "/testline/guideway/accel") is not None
+    health = checks[1]()
+    assert health.level == 1 and "G2LV flat" in health.message and "G1LV" not in health.message
+    assert any("[G2LV]" in ln and "flat-lined" in ln for ln in node.log.lines)
+    assert checks[0]().level == 0               # no block was dropped: the data are still used

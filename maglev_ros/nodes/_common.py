@@ -128,11 +128,15 @@ class BlockGate:
         self.dropped: Counter = Counter()            # kind -> blocks
         self.dropped_on: Counter = Counter()         # topic -> blocks
         self.converted: dict = {}                    # topic -> unit conversions made (logged once)
+        self.scans: dict = {}                        # topic -> health.TopicScan of the blocks taken
+        self._said: set = set()                      # (topic, channel, kind) already logged
         diagnostics.add_check(self.check)
+        diagnostics.add_check(self.health_check)
 
     def new_stream(self) -> None:
         """Call on new metadata: the next block of each topic sets its layout again."""
         self.stream.new_stream()
+        self.scans.clear()
 
     @property
     def seen(self) -> int:
@@ -169,7 +173,30 @@ class BlockGate:
             self.node.get_logger().warning(
                 f"{topic}: converted to SI by the contract's unit table: "
                 + ", ".join(f"{c.channel} {c.unit} -> {c.si_unit}" for c in conv))
+        self._scan(topic, si)
         return si
+
+    def _scan(self, topic: str, block) -> None:
+        """The verbs' flat / clipped / implausible scan (maglev_ros.health.TopicScan), fed per block."""
+        from maglev_ros.health import TopicScan
+        scan = self.scans.get(topic)
+        if scan is None:
+            scan = self.scans[topic] = TopicScan(topic, block.channels, block.sample_rate_hz)
+        scan.add(block.data)
+
+    def health_check(self):
+        """Channels the sensor-health scan calls flat, clipped or implausible so far: WARN naming
+        them (a node cannot leave a channel out of a model already built; the operator is told)."""
+        from maglev_ros.nodes._diagnostics import OK, WARN, Check
+        found = [i for scan in self.scans.values() for i in scan.issues()]
+        for i in found:
+            if (i.topic, i.channel, i.kind) not in self._said:
+                self._said.add((i.topic, i.channel, i.kind))
+                self.node.get_logger().warning(f"{i.topic} [{i.channel}]: {i.message}")
+        if not found:
+            return Check(OK, "", {})
+        return Check(WARN, "sensor health: " + "; ".join(f"{i.channel} {i.kind}" for i in found),
+                     {f"health {i.channel}": i.message for i in found})
 
     def check(self):
         from maglev_ros.nodes._diagnostics import OK, WARN, Check

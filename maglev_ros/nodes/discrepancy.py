@@ -15,8 +15,9 @@ peak residual of earlier passes), ``learn_rate`` (0.1), ``learn_rate_reported`` 
 ``rel_allowance`` (0.1, tolerated residual / measured amplitude; 0 = off), ``measured_topics``.
 
 The diagnosis (``live_diagnosis``, default true): the measured streams, the position and the
-metadata are assembled into recordings (:mod:`maglev_ros.discrepancy.live`); when one ends (new
-metadata, or no data for ``recording_idle_s`` = 2 s of wall time) an ambient recording is kept and a
+metadata are assembled into recordings (:mod:`maglev_ros.discrepancy.live`); when one ends (no
+data for ``recording_idle_s`` = 2 s of wall time; it takes the metadata received last) an ambient
+recording is kept and a
 pass is diagnosed in the background with the ambient and the last ``max_passes`` (2) passes by the
 same stages as ``maglev-ros diagnose`` (same recordings, same report). Each missing-physics entry and
 located mismatch goes out as a MismatchReport (effect, category, explanation filled; the entry in
@@ -85,6 +86,7 @@ class DiscrepancyNode(Node):
             self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
             self._lock = threading.Lock()           # the assembler is fed by callbacks, emptied by the timer
             self._last_data = None
+            self._metadata = None
             self._worker = None
             self._queue = []
             self.create_timer(0.5, self._check_idle)
@@ -129,16 +131,23 @@ class DiscrepancyNode(Node):
             return
         self.gate.new_stream()       # a new recording may have its own layout (rate, channels)
         with self._lock:
-            done = self._finished(lambda: self.assembler.set_metadata(md))
-        if done is not None:
-            self._submit(done)
+            # taken when the recording ends: across topics DDS does not order delivery, and the first
+            # blocks of a new recording can arrive before its metadata
+            self._metadata = md
 
     def _check_idle(self) -> None:
+        """A pause of ``recording_idle_s`` in the stream ends a recording; it carries the metadata
+        received last."""
         with self._lock:
             idle = self._last_data is not None and time.monotonic() - self._last_data > self.idle_s
-            done = self._finished(self.assembler.finish) if idle else None
+            done = None
             if idle:
                 self._last_data = None
+                if self._metadata is not None:
+                    self.assembler.metadata = self._metadata
+                done = self._finished(self.assembler.finish)
+        if idle:
+            self.gate.new_stream()   # the next recording sets its own layout
         if done is not None:
             self._submit(done)
 

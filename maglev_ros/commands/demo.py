@@ -13,6 +13,7 @@ import json
 import os
 from pathlib import Path
 
+from maglev_ros import outputs
 from maglev_ros.errors import UserError
 
 NAME = "demo"
@@ -108,7 +109,7 @@ def _run(args, out: Path, progress) -> int:
     report = {"recording": recording, "graph": flow}
     if not args.no_analysis:
         report["analysis"] = _analyse(args.bag, args.ambient, args.held_out or None, out, progress, args.quiet)
-    (out / "demo.json").write_text(json.dumps(report, indent=1))
+    outputs.write_json(out / "demo.json", report, indent=1)
     print(f"== done: {out / 'demo.json'}")
     return 0 if not lost else 1
 

@@ -8,12 +8,9 @@ discovered from the graph (every /testline/* and /maglev/* topic). Parameters: `
 """
 from __future__ import annotations
 
-import json
-import os
 import sys
 import time
 
-import rclpy
 from rclpy.node import Node
 
 from maglev_ros.nodes._common import message_class, qos_for, run_node
@@ -66,10 +63,8 @@ class SummaryNode(Node):
 
     def _write_json(self) -> None:
         """Atomically (a reader never sees half a file; a stop mid-write loses nothing written)."""
-        tmp = f"{self.json_out}.tmp"
-        with open(tmp, "w") as f:
-            json.dump(self.stats, f, indent=1)
-        os.replace(tmp, self.json_out)
+        from maglev_ros import outputs
+        outputs.write_json(self.json_out, self.stats, indent=1)
 
     def _tick(self) -> None:
         self._subscribe_new()

@@ -201,6 +201,7 @@ def test_fast_replay_waits_for_a_slow_reliable_subscriber_and_ignores_a_stuck_be
 
 
 @pytest.mark.ros
+@pytest.mark.slow     # the stall bound itself: test_stall_past_the_bound_raises_naming_the_topic (no DDS)
 def test_killed_subscriber_ends_the_replay_in_bounded_time_with_one_line_naming_the_topic(
         long_bag, env, procs, tmp_path):
     out = tmp_path / "victim.json"

@@ -34,6 +34,7 @@ ROSDEP_KEY = {
     "rosgraph_msgs": "rosgraph_msgs", "builtin_interfaces": "builtin_interfaces",
     "launch": "launch", "launch_ros": "launch_ros", "maglev_msgs": "maglev_msgs",
     "diagnostic_msgs": "diagnostic_msgs",
+    "rcl_interfaces": "rcl_interfaces",
 }
 # imported only when installed (guarded import) and without a rosdep key: pip brings it
 OPTIONAL_WITHOUT_KEY = {"threadpoolctl"}

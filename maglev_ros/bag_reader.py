@@ -549,13 +549,16 @@ class BagReader:
 
         names = [topics] if isinstance(topics, str) else list(topics)
         read = {t: self._read_topic_blocks(t) for t in names}
-        # topics not read, spanned from their first block (enough to see an hour's offset)
-        others = {t: (i.first_stamp_ns * 1e-9, i.first_stamp_ns * 1e-9
-                      + i.count * (i.block_samples or 0) / i.sample_rate_hz)
-                  for t, i in self.topics.items() if t not in read and i.is_sensor_block
-                  and i.first_stamp_ns is not None and i.sample_rate_hz}
         return check_topics(str(self.path), self.metadata, read, sensor_map=sensor_map,
-                            other_intervals=others)
+                            other_intervals=self.unread_intervals(read))
+
+    def unread_intervals(self, read) -> dict:
+        """Sensor topics not in ``read``, each spanned (start, end) [s] from its first block's stamp,
+        block count and rate: enough to see an hour's offset without reading them."""
+        return {t: (i.first_stamp_ns * 1e-9, i.first_stamp_ns * 1e-9
+                    + i.count * (i.block_samples or 0) / i.sample_rate_hz)
+                for t, i in self.topics.items() if t not in read and i.is_sensor_block
+                and i.first_stamp_ns is not None and i.sample_rate_hz}
 
     def _read_topic_blocks(self, topic: str, start_s: float | None = None,
                            duration_s: float | None = None) -> tuple:

@@ -200,10 +200,5 @@ def read_checked_windows(reader: BagReader, windowed, whole=(), sensor_map: bool
     feeds = {t: WindowFeed(reader, scan_topic(reader, t)) for t in windowed}
     for t in whole:
         feeds[t] = ArrayFeed(*reader._read_topic_blocks(t))
-    # topics not read, spanned from their first block (enough to see an hour's offset)
-    others = {t: (i.first_stamp_ns * 1e-9, i.first_stamp_ns * 1e-9
-                  + i.count * (i.block_samples or 0) / i.sample_rate_hz)
-              for t, i in reader.topics.items() if t not in feeds and i.is_sensor_block
-              and i.first_stamp_ns is not None and i.sample_rate_hz}
     return check_feeds(str(reader.path), reader.metadata, feeds, sensor_map=sensor_map,
-                       other_intervals=others)
+                       other_intervals=reader.unread_intervals(feeds))

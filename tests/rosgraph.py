@@ -33,11 +33,16 @@ def replay_through_node(env: dict, node_module: str, node_params: list[str], bag
         assert rep.returncode == 0, rep.stderr
         coll.wait(timeout=150)
     finally:
-        for p in (node, coll):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        stop_processes(node, coll)
     return json.loads(out.read_text())
+
+
+def stop_processes(*procs) -> None:
+    """SIGINT to each still running, then kill what has not ended within 10 s."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(2)
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()

@@ -13,7 +13,7 @@ import pytest
 
 sys.path.insert(0, os.path.dirname(__file__))
 from discrepancy_cases import make_case, write_case_bags  # noqa: E402
-from rosgraph import ros_env  # noqa: E402
+from rosgraph import ros_env, stop_processes  # noqa: E402
 
 from maglev_ros.bag_reader import BagReader  # noqa: E402
 from maglev_ros.discrepancy.diagnose import DiagnoseConfig, diagnose  # noqa: E402
@@ -109,13 +109,7 @@ def test_the_node_diagnoses_a_replayed_pass_as_the_offline_command_does(tmp_path
         th.join(timeout=400)
         coll.wait(timeout=420)
     finally:
-        for p in (node, coll):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        stop_processes(node, coll)
     got = json.loads(out.read_text())
     log.close()
     assert len(got["/maglev/diagnosis"]) == 1, (tmp_path / "node.log").read_text()

@@ -114,6 +114,17 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
     return BagModes(out.result, out.info, out.plan, health)
 
 
+def _channel_scaling(units, scale_channels) -> tuple[bool, str]:
+    """Whether each channel is brought to unit std, and why (``scale_channels`` None: by the units)."""
+    if scale_channels is not None:
+        return scale_channels, "user"
+    # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
+    # mixed units have no common scale, so each channel is brought to unit std
+    if len(set(units)) > 1:
+        return True, "channels' units differ"
+    return False, f"all channels in {units[0] if units else '?'}: recorded amplitudes kept"
+
+
 def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows, max_order,
                        decimate_to_hz, window, scale_channels) -> BagModes:
     """identify_modes' processing of the accelerations ``acc`` (a CheckedTopic of the open bag
@@ -146,15 +157,7 @@ def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows
                                        t_exit)
         info["free_decay_window"] = win.to_dict()
         start, stop = win.start_index, win.stop_index
-    if scale_channels is None:
-        # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
-        # mixed units have no common scale, so each channel is brought to unit std
-        scale_channels = len(set(units)) > 1
-        unit = units[0] if units else "?"
-        scale_src = ("channels' units differ" if scale_channels else
-                     f"all channels in {unit}: recorded amplitudes kept")
-    else:
-        scale_src = "user"
+    scale_channels, scale_src = _channel_scaling(units, scale_channels)
     try:
         plan = plan_bands(fs, stop - start, len(channels), stationary=not use_decay,
                           fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
@@ -192,15 +195,7 @@ def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_r
         win = select_free_decay(data, fs, time_s=t, **kw)
         info["free_decay_window"] = win.to_dict()
         data = data[win.start_index:win.stop_index]
-    if scale_channels is None:
-        # one unit: amplitudes are commensurable and like sensors' noise weighs them alike;
-        # mixed units have no common scale, so each channel is brought to unit std
-        scale_channels = len(set(cd.units)) > 1
-        unit = cd.units[0] if cd.units else "?"
-        scale_src = ("channels' units differ" if scale_channels else
-                     f"all channels in {unit}: recorded amplitudes kept")
-    else:
-        scale_src = "user"
+    scale_channels, scale_src = _channel_scaling(cd.units, scale_channels)
     try:
         plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,
                           fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,

@@ -10,7 +10,7 @@ diagnosis is the offline ``maglev-ros diagnose`` of the same recordings, not a s
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
@@ -66,11 +66,14 @@ class RecordingAssembler:
         if topic in TOPIC_GROUP or topic == TOPIC_VEHICLE_POSITION:
             self._topics.setdefault(topic, _TopicBlocks()).add(block)
 
-    def finish(self) -> Recording | None:
-        """The recording so far (None without metadata or data); the assembler starts a new one.
+    def finish(self, metadata: Mapping | None = None) -> Recording | None:
+        """The recording so far (None without metadata or data), under ``metadata`` if given (a live
+        stream names its recording's metadata only once it has ended); the assembler starts a new one.
         ContractError when it cannot be a recording (a unit outside the contract's table, a channel
         the metadata does not place)."""
         topics, self._topics = self._topics, {}
+        if metadata is not None:
+            self.metadata = dict(metadata)
         if self.metadata is None or not any(tb.blocks for tb in topics.values()):
             return None
         signals, position = {}, None
@@ -140,10 +143,3 @@ def _pair(v) -> list:
         return [np.nan, np.nan]
     v = [float(x) for x in (v if isinstance(v, (list, tuple)) else [v])]
     return v if len(v) == 2 else [v[0], v[-1]]
-
-
-def diagnose_recordings(recordings: Sequence[Recording], config: DiagnoseConfig = DiagnoseConfig(),
-                        max_passes: int = 2) -> list[Diagnosis]:
-    """Offline driver of :class:`LiveDiagnoser` (tests, batch): the diagnoses in stream order."""
-    ld = LiveDiagnoser(config, max_passes)
-    return [d for d in (ld.add_recording(r) for r in recordings) if d is not None]

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import queue
 import sys
 import threading
 import time
@@ -87,8 +88,8 @@ class DiscrepancyNode(Node):
             self._lock = threading.Lock()           # the assembler is fed by callbacks, emptied by the timer
             self._last_data = None
             self._metadata = None
-            self._worker = None
-            self._queue = []
+            self._queue = queue.SimpleQueue()    # completed recordings, diagnosed in order by one worker
+            threading.Thread(target=self._diagnose_queue, daemon=True).start()
             self.create_timer(0.5, self._check_idle)
         self.create_timer(0.5, self._discover)
         self._discover()
@@ -143,9 +144,7 @@ class DiscrepancyNode(Node):
             done = None
             if idle:
                 self._last_data = None
-                if self._metadata is not None:
-                    self.assembler.metadata = self._metadata
-                done = self._finished(self.assembler.finish)
+                done = self._finished(lambda: self.assembler.finish(self._metadata))
         if idle:
             self.gate.new_stream()   # the next recording sets its own layout
         if done is not None:
@@ -159,14 +158,11 @@ class DiscrepancyNode(Node):
             return None
 
     def _submit(self, rec) -> None:
-        self._queue.append(rec)
-        if self._worker is None or not self._worker.is_alive():
-            self._worker = threading.Thread(target=self._diagnose_queue, daemon=True)
-            self._worker.start()
+        self._queue.put(rec)
 
     def _diagnose_queue(self) -> None:
-        while self._queue:
-            rec = self._queue.pop(0)
+        while True:
+            rec = self._queue.get()
             self.get_logger().info(f"recording complete ({rec.kind}, {rec.t1_s - rec.t0_s:.1f} s)"
                                    + (": diagnosing" if rec.kind == "pass" else ": kept as the ambient recording"))
             try:

@@ -54,6 +54,13 @@ def message_class(msgtype: str):
         return None
 
 
+def rel(topic: str) -> str:
+    """The relative form of a contract or suite topic (``/testline/vehicle/accel`` ->
+    ``testline/vehicle/accel``): nodes publish and subscribe relative names so that a namespace
+    (``--ros-args -r __ns:=/line2``) moves a whole graph; without one they resolve to the same names."""
+    return topic.lstrip("/")
+
+
 def qos_for(topic: str) -> QoSProfile:
     return QOS_LATCHED if topic in LATCHED_TOPICS else QOS_STREAM
 

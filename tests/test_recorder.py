@@ -266,3 +266,46 @@ def test_graph_recorded_and_read_back_by_rosbags_mcap_and_info(tmp_path, capsys)
         want = {t: i.count for t, i in r.topics.items()}
     counts = {t["topic"]: t["count"] for t in rep["topics"]}
     assert {t: counts.get(t) for t in want} == want
+
+
+# ----------------------------------------------------------------------- maglev-ros launch
+@pytest.mark.parametrize("argv, says", [
+    (["--record", "{tmp}/x.txt"], "expected a file name ending in .mcap"),
+    (["--record", "{tmp}/no/x.mcap"], "does not exist"),
+    (["--record-inputs"], "without --record"),
+])
+def test_launch_record_mistakes_are_one_line(tmp_path, capsys, argv, says):
+    from maglev_ros.cli import main as cli
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert cli(["launch", "monitor", "--out", str(tmp_path), *argv]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and says in err and err.startswith("maglev-ros launch: error: --record")
+
+
+@pytest.mark.ros
+def test_launch_record_writes_what_the_graph_carried(tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    from maglev_ros.bag_reader import BagReader
+    from rosgraph import ros_env
+
+    topics = example_topics(duration_s=0.4)
+    bag = write_contract_bag(tmp_path / "in", make_metadata(topics), topics, block_s=0.1,
+                             t0_ns=1_700_000_000_000_000_000)
+    rec = tmp_path / "graph.mcap"
+    # the monitor graph without its processing nodes (their start-up costs minutes here): the
+    # replay and the recorder the command adds
+    script = ("import sys; from maglev_ros import launch_graph as g; from maglev_ros.cli import main; "
+              "g.GRAPHS['monitor'] = [n for n in g.GRAPHS['monitor'] if n.needs_bag]; sys.exit(main(sys.argv[1:]))")
+    run = subprocess.run([sys.executable, "-c", script, "launch", "monitor", "--bag", str(bag), "--fast",
+                          "--linger", "0", "--out", str(tmp_path / "o"), "--record", str(rec),
+                          "--record-inputs", "--record-reliable"],
+                         env=ros_env(185), capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr
+    with BagReader(bag) as r:
+        want = {t: i.count for t, i in r.topics.items()}
+    with AnyReader([rec], default_typestore=typestore()) as ar:
+        got = Counter(c.topic for c, _, _ in ar.messages())
+    # every input the replay published, and the recorder's own run-protocol status
+    assert {t: got[t] for t in want} == want
+    assert set(got) - set(want) <= {"/maglev/status", "/diagnostics"}

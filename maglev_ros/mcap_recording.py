@@ -120,6 +120,10 @@ class McapRecording:
         self.counts[topic] = 0
         return ch
 
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        """Register ``topic`` now (readers list it even if no message follows)."""
+        self._channel(topic, msgtype)
+
     def write(self, topic: str, msgtype: str, cdr: bytes, log_time_ns: int,
               publish_time_ns: int | None = None) -> None:
         """One serialized message (``pkg/msg/Type``, CDR bytes) received at ``log_time_ns``;

@@ -134,6 +134,16 @@ def test_subscription_qos_matches_every_publisher_and_holds_streams_only_when_as
                     assert sub.reliability == R.BEST_EFFORT     # never holds a replay back
                 if latched and all(r == R.RELIABLE for r, _ in keys):
                     assert sub.reliability == R.RELIABLE        # late joiners get the last message
+    # subscribed before any publisher: a stream matches any publisher unless reliable is asked,
+    # a latched topic (the contract's metadata) every reliable latched one
+    for latched in (False, True):
+        for reliable in (False, True):
+            sub = subscription_qos([], reliable, latched=latched)
+            ok = [k for k, q in pubs.items() if qos_check_compatible(q, sub)[0] != QoSCompatibility.ERROR]
+            if latched:
+                assert (R.RELIABLE, D.TRANSIENT_LOCAL) in ok and sub.durability == D.TRANSIENT_LOCAL
+            elif not reliable:
+                assert len(ok) == 4
 
 
 def test_recorded_names_drop_the_namespace():
@@ -293,10 +303,13 @@ def test_launch_record_writes_what_the_graph_carried(tmp_path):
     bag = write_contract_bag(tmp_path / "in", make_metadata(topics), topics, block_s=0.1,
                              t0_ns=1_700_000_000_000_000_000)
     rec = tmp_path / "graph.mcap"
-    # the monitor graph without its processing nodes (their start-up costs minutes here): the
-    # replay and the recorder the command adds
+    # the monitor graph with a summary node in place of its processing nodes (their start-up
+    # costs minutes here): it subscribes every topic, so the replay's wait for a subscriber on
+    # each data topic does not wait for the recorder, which must still miss no block
     script = ("import sys; from maglev_ros import launch_graph as g; from maglev_ros.cli import main; "
-              "g.GRAPHS['monitor'] = [n for n in g.GRAPHS['monitor'] if n.needs_bag]; sys.exit(main(sys.argv[1:]))")
+              "g.GRAPHS['monitor'] = [n for n in g.GRAPHS['monitor'] if n.needs_bag] + "
+              "[g.NodeSpec('summary', 'maglev_ros.nodes.summary', params={'idle_s': 120.0})]; "
+              "sys.exit(main(sys.argv[1:]))")
     run = subprocess.run([sys.executable, "-c", script, "launch", "monitor", "--bag", str(bag), "--fast",
                           "--linger", "0", "--out", str(tmp_path / "o"), "--record", str(rec),
                           "--record-inputs", "--record-reliable"],

@@ -13,7 +13,7 @@ Parameters:
                                   the graph down
   flush_period_s (float, 5)       end the open chunk this often (a crash loses at most this much)
 
-Topics are discovered as their first publisher appears, under the node's namespace
+Other topics are discovered as their first publisher appears, under the node's namespace
 (``-r __ns:=/line2`` records /line2/maglev/* only), and recorded under their names without it,
 the namespace going into the file's ``maglev_ros`` metadata record. Messages are taken raw
 (serialized CDR, never deserialised). A latched topic (every publisher transient local) is
@@ -23,13 +23,17 @@ subscription. ``qos_overrides./<topic>.subscription.<policy>`` parameters overri
 Log time is the receive time on the node's clock (the replay's /clock with ``use_sim_time``;
 messages taken before the first /clock get its first value), publish time the header stamp.
 SIGINT/SIGTERM: messages already received are taken, the file is finished and renamed.
-Run protocol (``_lifecycle``): ``ready`` after its first look at the graph, ``done`` for a
-replayed recording once the file holds what arrived until its end (an observer holds nothing back).
+The contract's topics (metadata; the streams with ``include_inputs``) are subscribed at start,
+before their publishers appear, so a replay that starts once every node is up loses no block;
+their QoS is checked when a publisher appears (a best-effort one gets a best-effort subscription).
+Run protocol (``_lifecycle``): ``ready`` at start, ``done`` for a replayed recording once the file
+holds what arrived until its end (an observer holds nothing back).
 """
 from __future__ import annotations
 
 import datetime
 import sys
+from dataclasses import dataclass
 
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
@@ -37,24 +41,25 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
+from maglev_ros.contract import DATA_TOPICS, SENSORBLOCK_TYPE, STRING_TYPE, TOPIC_METADATA
 from maglev_ros.errors import UserError
 from maglev_ros.nodes._common import message_class, rel, run_node
 
 TOPIC_DIAGNOSTICS = "/diagnostics"
-TOPIC_METADATA = "/testline/metadata"
 # best-effort streams: room for a burst the executor has not taken yet (a full queue drops the oldest)
 STREAM_DEPTH = 1000
 LATCHED_DEPTH = 100     # one latched message per publisher (maglev/status has one per node)
 
 
-def subscription_qos(publisher_qos: list, reliable: bool = False) -> QoSProfile:
+def subscription_qos(publisher_qos: list, reliable: bool = False, latched: bool = False) -> QoSProfile:
     """The recorder's subscription QoS for a topic offered with ``publisher_qos`` (one profile per
     publisher): compatible with every one of them, transient local when all are latched (their
     last message is delivered to a late joiner only over a reliable link), best-effort for streams
-    unless ``reliable`` is asked and no publisher is best-effort."""
+    unless ``reliable`` is asked and no publisher is best-effort. Without publishers (a topic
+    subscribed before they appear) ``latched`` says what to expect."""
     best_effort = any(q.reliability == ReliabilityPolicy.BEST_EFFORT for q in publisher_qos)
-    latched = bool(publisher_qos) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                                          for q in publisher_qos)
+    if publisher_qos:
+        latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in publisher_qos)
     if latched:
         return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=LATCHED_DEPTH,
                           reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
@@ -75,6 +80,14 @@ def recorded_name(full_name: str, namespace: str) -> str | None:
     if not ns:
         return full_name
     return full_name[len(ns):] if full_name.startswith(ns + "/") else None
+
+
+@dataclass
+class _Sub:
+    sub: object
+    recorded: str                   # the name in the file
+    msgtype: str
+    provisional: bool               # made before any publisher: its QoS is checked when one appears
 
 
 class RecorderNode(Node):
@@ -108,7 +121,7 @@ class RecorderNode(Node):
             "reliable": self.reliable, "log_time": "sim time (/clock)" if sim else "system time",
             "started_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
         self.recording.open()
-        self.subs: dict[str, tuple] = {}        # graph name -> (subscription, recorded name, type)
+        self.subs: dict[str, _Sub] = {}         # graph name -> its subscription
         self._pending: list[tuple[str, str, bytes]] = []    # taken before sim time started
         self.exit_code = 0
         self.finished = False
@@ -116,10 +129,17 @@ class RecorderNode(Node):
             f"recording /maglev/*{' and /testline/*' if self.include_inputs else ''} under "
             f"namespace {self.namespace} to {self.recording.path} (written to "
             f"{self.recording.partial.name} until stopped)")
-        # the run protocol: ready after the first look at the graph; done for a recording once its
+        # the contract's topics are subscribed now, before their publishers appear: a replay
+        # starts once every node is up and subscribed, and the first blocks are then not missed
+        for topic in [TOPIC_METADATA] + (list(DATA_TOPICS) if self.include_inputs else []):
+            self._subscribe(self.namespace.rstrip("/") + topic, topic,
+                            STRING_TYPE if topic == TOPIC_METADATA else SENSORBLOCK_TYPE,
+                            subscription_qos([], self.reliable, latched=topic == TOPIC_METADATA),
+                            provisional=True)
+        # the run protocol: ready now (subscribed to the inputs); done for a recording once its
         # data so far is flushed to the file (an observer: it never holds results back)
         from maglev_ros.nodes._lifecycle import NodeLifecycle
-        self.lifecycle = NodeLifecycle(self, ready=False)
+        self.lifecycle = NodeLifecycle(self, ready=True)
         # steady time: under use_sim_time a node-clock timer stops when the replay's /clock does
         self.create_timer(0.25, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -132,7 +152,8 @@ class RecorderNode(Node):
 
     def _subscribe_new(self) -> None:
         for name, types in self.get_topic_names_and_types():
-            if name in self.subs:
+            known = self.subs.get(name)
+            if known is not None and not known.provisional:
                 continue
             recorded = recorded_name(name, self.namespace)
             if recorded is None or not self._wanted(recorded):
@@ -144,15 +165,33 @@ class RecorderNode(Node):
             if not pubs:
                 continue        # only subscribers so far: its QoS (latched or not) is not known yet
             qos = subscription_qos([i.qos_profile for i in pubs], self.reliable)
-            sub_name = name if recorded == TOPIC_DIAGNOSTICS else rel(recorded)
-            sub = self.create_subscription(
-                message_class(msgtype), sub_name, self._cb(recorded, msgtype), qos, raw=True,
-                qos_overriding_options=QoSOverridingOptions.with_default_policies())
-            self.subs[name] = (sub, recorded, msgtype)
-            self.get_logger().info(
-                f"recording {name}" + (f" as {recorded}" if recorded != name else "")
-                + f" ({msgtype}, {sub.qos_profile.reliability.name.lower()}, "
-                f"{sub.qos_profile.durability.name.lower()})")
+            if known is not None:
+                known.provisional = False
+                have = known.sub.qos_profile
+                if (have.reliability, have.durability) == (qos.reliability, qos.durability) \
+                        and known.msgtype == msgtype:
+                    self.recording.add_topic(known.recorded, msgtype)
+                    continue
+                # e.g. a best-effort DAQ driver: a reliable subscription would never match it
+                self.get_logger().info(f"{name}: its publishers offer {pubs[0].qos_profile.reliability.name.lower()}"
+                                       f", {pubs[0].qos_profile.durability.name.lower()}: subscribing again")
+                self.destroy_subscription(known.sub)
+                del self.subs[name]
+            self._subscribe(name, recorded, msgtype, qos, provisional=False)
+
+    def _subscribe(self, name: str, recorded: str, msgtype: str, qos, provisional: bool) -> None:
+        sub_name = name if recorded == TOPIC_DIAGNOSTICS else rel(recorded)
+        sub = self.create_subscription(
+            message_class(msgtype), sub_name, self._cb(recorded, msgtype), qos, raw=True,
+            qos_overriding_options=QoSOverridingOptions.with_default_policies())
+        self.subs[name] = _Sub(sub, recorded, msgtype, provisional)
+        if not provisional:     # in the file from now on, even if nothing comes
+            self.recording.add_topic(recorded, msgtype)
+        self.get_logger().info(
+            f"{'subscribed to' if provisional else 'recording'} {name}"
+            + (f" as {recorded}" if recorded != name else "")
+            + f" ({msgtype}, {sub.qos_profile.reliability.name.lower()}, "
+            f"{sub.qos_profile.durability.name.lower()})")
 
     # ---------------------------------------------------------------------------- writing
     def _now_ns(self) -> int | None:
@@ -192,7 +231,6 @@ class RecorderNode(Node):
         if not self.recording.is_open:
             return
         self._subscribe_new()
-        self.lifecycle.set_ready()
         try:
             self.recording.flush_if_due()
         except OSError as exc:
@@ -210,7 +248,8 @@ class RecorderNode(Node):
     def _drain(self) -> None:
         """Take what the subscriptions received but the executor did not hand out before the stop
         (rclpy's own take, as its executors call it)."""
-        for sub, topic, msgtype in self.subs.values():
+        for s in self.subs.values():
+            sub, topic, msgtype = s.sub, s.recorded, s.msgtype
             while self.recording.is_open:
                 try:
                     with sub.handle:
@@ -227,7 +266,7 @@ class RecorderNode(Node):
         self._drain()
         if self._pending and self.recording.is_open:   # sim time never started: system time
             import time
-            self._write(*self._pending.pop(), time.time_ns())
+            self._write(*self._pending.pop(), self._now_ns() or time.time_ns())
         if not self.recording.is_open:
             return
         try:

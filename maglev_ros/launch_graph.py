@@ -34,6 +34,17 @@ GRAPHS: dict[str, list[NodeSpec]] = {
 }
 
 
+def recorder_spec(path, include_inputs: bool = False, reliable: bool = False,
+                  sim_time: bool = False) -> NodeSpec:
+    """The MCAP recorder (maglev_ros.nodes.recorder) added to a graph: ``path`` absolute (the node
+    runs elsewhere), log times on the replay's /clock when ``sim_time``."""
+    import os
+    return NodeSpec("recorder", "maglev_ros.nodes.recorder",
+                    params={"path": os.path.abspath(path), "include_inputs": bool(include_inputs),
+                            "reliable": bool(reliable), "use_sim_time": bool(sim_time)},
+                    runs_until_stopped=True)
+
+
 def graph(name: str) -> list[NodeSpec]:
     from maglev_ros.errors import UserError
     if name not in GRAPHS:

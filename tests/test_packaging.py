@@ -30,6 +30,8 @@ ROSDEP_KEY = {
     "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip",
     "numba": "python3-numba", "torch": "python3-torch", "tqdm": "python3-tqdm",
     "rich": "python3-rich",
+    # no key for mcap alone: the pip key mcap-ros2-support installs it (its dependency)
+    "mcap": "mcap-ros2-support",
     "rclpy": "rclpy", "std_msgs": "std_msgs", "std_srvs": "std_srvs",
     "rosgraph_msgs": "rosgraph_msgs", "builtin_interfaces": "builtin_interfaces",
     "launch": "launch", "launch_ros": "launch_ros", "maglev_msgs": "maglev_msgs",

@@ -2,7 +2,8 @@
 
 1. checks the pass recording against the contract;
 2. replays it through the monitor node graph (irregularity, modal_id, twin, updater,
-   discrepancy) with a summary node counting what flows;
+   discrepancy) with a summary node counting what flows and a recorder writing the graph's
+   inputs and outputs to ``graph.mcap`` (open it in Foxglove);
 3. analyses it offline with the public verbs: guideway modes of the ambient recording,
    irregularity of the pass, two-layer model update, and the mismatch diagnosis with its
    HTML report.
@@ -76,7 +77,7 @@ def run(args) -> int:
 
 
 def _run(args, out: Path, progress) -> int:
-    from maglev_ros.launch_graph import NodeSpec
+    from maglev_ros.launch_graph import NodeSpec, recorder_spec
     from maglev_ros.launcher import launch
 
     progress.stage("1/3 recording and contract")
@@ -87,12 +88,15 @@ def _run(args, out: Path, progress) -> int:
     print(f"== 2. replay through the node graph at {args.rate:g}x", flush=True)
     graph_json = out / "graph_summary.json"
     graph_json.unlink(missing_ok=True)
+    (out / "graph.mcap").unlink(missing_ok=True)
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     summary = NodeSpec("summary", "maglev_ros.nodes.summary",
                        params={"idle_s": 3.0, "json_out": str(graph_json.resolve())})
+    # reliable: the demo's file holds every message (the recorder keeps up with any node)
+    recorder = recorder_spec(out / "graph.mcap", include_inputs=True, reliable=True, sim_time=True)
     # a node that dies raises GraphFailure (one line naming it) after the graph was stopped
-    code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=15.0,
+    code = launch("monitor", bag=args.bag, extra=[summary, recorder], env=env, linger_s=15.0,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
                                         "wait_subscribers": 1},
                              "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})
@@ -106,6 +110,8 @@ def _run(args, out: Path, progress) -> int:
             if flow.get(t, {}).get("messages", 0) != expected[t]}
     print("  every recorded message went through the graph" if not lost
           else f"  messages missing on: {lost}")
+    if (out / "graph.mcap").exists():
+        print(f"  the graph's inputs and outputs: {out / 'graph.mcap'} (MCAP; Foxglove, rosbags)")
     report = {"recording": recording, "graph": flow}
     if not args.no_analysis:
         report["analysis"] = _analyse(args.bag, args.ambient, args.held_out or None, out, progress, args.quiet)

@@ -23,6 +23,15 @@ def add_arguments(p) -> None:
     p.add_argument("--history", metavar="FILE",
                    help="the updater's parameter history (default DIR/twin_parameters.jsonl); only "
                         "records of the recording's own line are loaded from it")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record the graph's /maglev/* outputs, /testline/metadata and /diagnostics "
+                        "to this MCAP file (Foxglove, rosbags; finished when the graph stops)")
+    p.add_argument("--record-inputs", action="store_true",
+                   help="with --record: also the /testline/* streams (the file is then a contract "
+                        "bag that every verb reads)")
+    p.add_argument("--record-reliable", action="store_true",
+                   help="with --record: subscribe the streams reliably (nothing lost; the replay "
+                        "then also waits for the recorder)")
     p.add_argument("--linger", type=float, default=30.0, metavar="S",
                    help="after a finite replay ends, keep the graph running this long so the twin, "
                         "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
@@ -49,7 +58,20 @@ def run(args) -> int:
         history.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
+    extra = []
+    if args.record:
+        from maglev_ros.launch_graph import recorder_spec
+        from maglev_ros.outputs import check_file
+        if not args.record.endswith(".mcap"):
+            raise UserError(f"--record {args.record}: expected a file name ending in .mcap")
+        check_file(args.record, "--record")
+        extra.append(recorder_spec(args.record, args.record_inputs, args.record_reliable,
+                                   sim_time=bool(args.bag)))
+    elif args.record_inputs or args.record_reliable:
+        raise UserError("--record-inputs / --record-reliable: given without --record FILE.mcap")
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
-          f"{history.resolve()}", flush=True)
+          f"{history.resolve()}" + (f"; recording to {Path(args.record).resolve()}" if args.record else ""),
+          flush=True)
     return launch(args.graph, bag=args.bag, params_file=args.params_file, linger_s=args.linger,
-                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}})
+                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}},
+                  extra=extra)

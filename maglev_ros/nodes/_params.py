@@ -134,7 +134,7 @@ def declare(node, params) -> dict:
                 raw = node.declare_parameter(spec.name, default, spec.descriptor()).value
             except InvalidParameterValueException as exc:
                 # our own check's reason (or rclpy's range check's), without rclpy's preamble
-                reason = str(exc).split("Reason: ", 1)[-1].splitlines()[0]
+                reason = str(exc).split("Reason: ", 1)[-1].splitlines()[0].removesuffix(f": {spec.name}")
                 raise UserError(_one_line(spec, reason)) from None
             except InvalidParameterTypeException:
                 raise UserError(f"parameter '{spec.name}': expected {_EXPECTED[spec.kind]} "

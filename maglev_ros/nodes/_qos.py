@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import copy
 
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from maglev_ros.contract import DATA_TOPICS
@@ -46,6 +46,20 @@ def local_topic(node, name: str) -> str | None:
     if not ns:
         return name
     return name[len(ns):] if name.startswith(ns + "/") else None
+
+
+def offered_qos(node, fq_topic: str, default: QoSProfile) -> QoSProfile:
+    """``default`` adapted to the publishers ``fq_topic`` has now, as rosbag2's recorder does for an
+    observer: best effort if any publisher is, transient local only if every one is (a latched
+    topic's last message is then delivered)."""
+    offered = [p.qos_profile for p in node.get_publishers_info_by_topic(fq_topic)]
+    qos = copy.copy(default)
+    if offered:
+        if any(q.reliability == ReliabilityPolicy.BEST_EFFORT for q in offered):
+            qos.reliability = ReliabilityPolicy.BEST_EFFORT
+        latched = all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+        qos.durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
+    return qos
 
 
 def _overrides() -> QoSOverridingOptions:

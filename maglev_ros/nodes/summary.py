@@ -18,7 +18,7 @@ from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import local_topic, subscription
 
 PARAMS = (
-    Param("idle_s", 3.0, "stop this long after the last message [s]", range=(0.0, 86400.0),
+    Param("idle_s", 3.0, "stop this long after the last message [s]", range=(0.0, 1e9),
           apply=lambda node, v: setattr(node, "idle_s", v)),
     Param("max_s", 600.0, "stop this long after the start at the latest [s]", range=(0.0, 1e7),
           apply=lambda node, v: setattr(node, "max_s", v)),

@@ -59,7 +59,7 @@ PARAMS = (
     Param("max_lag_s", 6.0, "how far the twin may lag the stream while the rail ahead is measured [s]",
           range=(0.0, 3600.0)),
     Param("idle_flush_s", 2.0, "no input for this long (wall time) ends the stream: the queued "
-                               "remainder is stepped and published [s]", range=(0.0, 86400.0),
+                               "remainder is stepped and published [s]", range=(0.0, 1e9),
           apply=lambda node, v: setattr(node, "idle_flush_s", v)),
 )
 

@@ -33,6 +33,8 @@ def add_arguments(p) -> None:
                    help="a second pass for the diagnosis: the faster of the passes trains, the other is "
                         "held out (default: bags/paper_pass2; '' for none)")
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="run the node graph in this ROS namespace (beside another line's graph)")
     p.add_argument("--no-analysis", action="store_true",
                    help="stop after the replay through the graph (skip step 3)")
     p.add_argument("--quiet", action="store_true",
@@ -67,6 +69,8 @@ def run(args) -> int:
     if not os.path.exists(args.bag):
         raise UserError(f"{args.bag}: no such bag")
     check_rate(args.rate)
+    from maglev_ros.launch_graph import check_namespace
+    check_namespace(args.namespace)
     require_ros()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -92,7 +96,7 @@ def _run(args, out: Path, progress) -> int:
     summary = NodeSpec("summary", "maglev_ros.nodes.summary",
                        params={"idle_s": 3.0, "json_out": str(graph_json.resolve())})
     # a node that dies raises GraphFailure (one line naming it) after the graph was stopped
-    code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=15.0,
+    code = launch("monitor", bag=args.bag, extra=[summary], env=env, linger_s=15.0, namespace=args.namespace,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
                                         "wait_subscribers": 1},
                              "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})

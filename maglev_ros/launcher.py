@@ -4,11 +4,14 @@ Starts each node of a graph as its own process, prefixes their output with the n
 stops them all on Ctrl-C, and, when a finite replay ends, gives the others ``linger_s`` to
 finish and then stops them too.
 
-A replay in the graph publishes its latched metadata only when every other node of the graph is
-up (``wait_nodes``: no node's idle timer starts early) and its data only when every data topic
-has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` = 60 s (process
-start-up and imports take seconds on a loaded machine), so no node misses the beginning; it stays alive during the
-linger (``linger_s``), so its latched metadata stays available to late joiners.
+What each node gets (parameters, namespace, remappings) is ``launch_graph.node_launches``, shared
+with the ROS 2 launch file. A replay in the graph publishes its latched metadata only when every
+other node of the graph is up (``wait_nodes``: no node's idle timer starts early) and its data only
+when every data topic has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` =
+60 s (process start-up and imports take seconds on a loaded machine), so no node misses the
+beginning; it stays alive during the linger (``linger_s``), so its latched metadata stays available
+to late joiners. With a ``namespace`` every node runs in it (``-r __ns:=NS``, ``/clock`` remapped to
+``NS/clock``): two graphs run side by side on one ROS domain.
 
 Every node process is watched. A node that ends with a non-zero code or by a signal (kill -9), or
 a node that runs until stopped (``NodeSpec.runs_until_stopped``) ending at all, while the graph
@@ -27,7 +30,7 @@ import time
 from dataclasses import dataclass
 
 from maglev_ros.errors import UserError
-from maglev_ros.launch_graph import NodeSpec, graph, ros_param_args
+from maglev_ros.launch_graph import NodeSpec, node_launches, ros_args
 
 STOP_TIMEOUT_S = 5.0
 # exit codes of a node stopped by SIGINT: 0 from run_node; 130 / -SIGINT from Python when the
@@ -68,29 +71,29 @@ def _pump(name: str, stream, out) -> None:
         out.flush()
 
 
+def command_lines(graph_name: str, bag: str | None = None, overrides: dict | None = None,
+                  params_file: str | None = None, linger_s: float = 30.0, namespace: str = "",
+                  use_sim_time: bool = False, extra: list[NodeSpec] = ()) -> list[tuple[NodeSpec, list[str]]]:
+    """(spec, command line) of every node :func:`launch` starts with these arguments."""
+    return [(nl.spec, [sys.executable, "-u", "-m", nl.module, *ros_args(nl)])
+            for nl in node_launches(graph_name, bag=bag, overrides=overrides, params_file=params_file,
+                                    namespace=namespace, use_sim_time=use_sim_time, linger_s=linger_s,
+                                    extra=extra)]
+
+
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
            params_file: str | None = None, linger_s: float = 30.0, env: dict | None = None,
-           out=sys.stderr, on_started=None, extra: list[NodeSpec] = ()) -> int:
+           out=sys.stderr, on_started=None, extra: list[NodeSpec] = (), namespace: str = "",
+           use_sim_time: bool = False) -> int:
     """Run a graph until its replay ends. Returns 0 when every node ran and ended as it should,
     130 on Ctrl-C; raises :class:`GraphFailure` (after stopping the graph) when a node failed."""
-    overrides = overrides or {}
     procs: list[Running] = []
     failures: list[str] = []
     penv = dict(os.environ if env is None else env)
-    specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
-    others = [s.name for s in specs if not s.needs_bag]
+    cmds = command_lines(graph_name, bag=bag, overrides=overrides, params_file=params_file, linger_s=linger_s,
+                         namespace=namespace, use_sim_time=use_sim_time, extra=extra)
     try:
-        for spec in specs:
-            params = dict(spec.params)
-            if spec.needs_bag:
-                params["bag"] = os.path.abspath(bag)
-                params.update({"wait_nodes": others, "wait_subscribers": 1, "wait_timeout_s": 60.0,
-                               "linger_s": float(linger_s)})
-            params.update(overrides.get(spec.name, {}))
-            cmd = [sys.executable, "-u", "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]
-            if params_file:
-                cmd += ["--params-file", params_file]
-            cmd += ros_param_args(params)
+        for spec, cmd in cmds:
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     text=True, env=penv, start_new_session=True)
             pump = threading.Thread(target=_pump, args=(spec.name, proc.stdout, out), daemon=True)

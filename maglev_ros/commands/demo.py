@@ -34,6 +34,8 @@ def add_arguments(p) -> None:
                    help="a second pass for the diagnosis: the faster of the passes trains, the other is "
                         "held out (default: bags/paper_pass2; '' for none)")
     p.add_argument("--out", default="out/demo", help="directory for the demo's outputs")
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="run the node graph in this ROS namespace (beside another line's graph)")
     p.add_argument("--no-analysis", action="store_true",
                    help="stop after the replay through the graph (skip step 3)")
     p.add_argument("--quiet", action="store_true",
@@ -68,6 +70,8 @@ def run(args) -> int:
     if not os.path.exists(args.bag):
         raise UserError(f"{args.bag}: no such bag")
     check_rate(args.rate)
+    from maglev_ros.launch_graph import check_namespace
+    check_namespace(args.namespace)
     require_ros()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -96,7 +100,7 @@ def _run(args, out: Path, progress) -> int:
     # reliable: the demo's file holds every message (the recorder keeps up with any node)
     recorder = recorder_spec(out / "graph.mcap", include_inputs=True, reliable=True, sim_time=True)
     # a node that dies raises GraphFailure (one line naming it) after the graph was stopped
-    code = launch("monitor", bag=args.bag, extra=[summary, recorder], env=env, linger_s=15.0,
+    code = launch("monitor", bag=args.bag, extra=[summary, recorder], env=env, linger_s=15.0, namespace=args.namespace,
                   overrides={"replay": {"rate": float(args.rate), "progress": False,
                                         "wait_subscribers": 1},
                              "updater": {"history_path": str((out / "twin_parameters.jsonl").resolve())}})

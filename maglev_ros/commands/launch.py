@@ -1,4 +1,7 @@
-"""``maglev-ros launch GRAPH``: start the suite's node graph (our own launcher; see launch/)."""
+"""``maglev-ros launch GRAPH``: start the suite's node graph (our own launcher; see launch/).
+
+The options are the launch arguments of launch/monitor.launch.py (``launch_graph.LAUNCH_ARGUMENTS``)
+and both compute what each node gets with ``launch_graph.node_launches``."""
 from __future__ import annotations
 
 import os
@@ -12,12 +15,19 @@ ORDER = 40
 
 
 def add_arguments(p) -> None:
+    from maglev_ros.launch_graph import LAUNCH_ARGUMENTS
+    default = {name: value for name, value, _ in LAUNCH_ARGUMENTS}    # the launch file's defaults
     p.add_argument("graph", help="graph name: monitor")
     p.add_argument("--bag", help="replay this bag through the graph")
-    p.add_argument("--rate", type=float, default=1.0, help="replay rate (0.1-100)")
+    p.add_argument("--rate", type=float, default=float(default["rate"]), help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
-    p.add_argument("--out", default="out/monitor", metavar="DIR",
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="run the whole graph in this ROS namespace, /clock included (two lines side "
+                        "by side: /line1, /line2)")
+    p.add_argument("--use-sim-time", action="store_true",
+                   help="the nodes run on the replay's /clock (the replay itself on wall time)")
+    p.add_argument("--out", default=default["out"], metavar="DIR",
                    help="output directory of the launch (default out/monitor): the updater's "
                         "parameter history goes there")
     p.add_argument("--history", metavar="FILE",
@@ -32,16 +42,15 @@ def add_arguments(p) -> None:
     p.add_argument("--record-reliable", action="store_true",
                    help="with --record: subscribe the streams reliably (nothing lost; the replay "
                         "then also waits for the recorder)")
-    p.add_argument("--linger", type=float, default=30.0, metavar="S",
+    p.add_argument("--linger", type=float, default=float(default["linger_s"]), metavar="S",
                    help="after a finite replay ends, keep the graph running this long so the twin, "
                         "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
                         "layer may take minutes on a busy machine)")
 
 
-def run(args) -> int:
-    from maglev_ros.nodes import require_ros
-    require_ros()
-    from maglev_ros.launcher import launch
+def launch_kwargs(args) -> dict:
+    """The keyword arguments of ``launcher.launch`` for these options (checked; no directory made)."""
+    from maglev_ros.launch_graph import check_namespace, launch_overrides
     from maglev_ros.replay_timing import check_rate
     if args.bag and not os.path.exists(args.bag):
         raise UserError(f"{args.bag}: no such bag")
@@ -49,15 +58,18 @@ def run(args) -> int:
         raise UserError(f"{args.params_file}: no such parameters file")
     if not args.fast:
         check_rate(args.rate)
-    # one process's \r progress bar garbles the merged output: the replay logs its summary instead
-    replay = {"rate": float(args.rate), "fast": bool(args.fast), "progress": False}
     if args.linger < 0:
         raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
-    history = Path(args.history) if args.history else Path(args.out) / "twin_parameters.jsonl"
-    try:
-        history.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
+    return dict(bag=args.bag, params_file=args.params_file, linger_s=args.linger,
+                namespace=check_namespace(args.namespace), use_sim_time=bool(args.use_sim_time),
+                overrides=launch_overrides(rate=args.rate, fast=args.fast, out=args.out, history=args.history))
+
+
+def run(args) -> int:
+    from maglev_ros.nodes import require_ros
+    require_ros()
+    from maglev_ros.launcher import launch
+    kwargs = launch_kwargs(args)
     extra = []
     if args.record:
         from maglev_ros.launch_graph import recorder_spec
@@ -69,9 +81,12 @@ def run(args) -> int:
                                    sim_time=bool(args.bag)))
     elif args.record_inputs or args.record_reliable:
         raise UserError("--record-inputs / --record-reliable: given without --record FILE.mcap")
+    history = Path(kwargs["overrides"]["updater"]["history_path"])
+    try:
+        history.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
-          f"{history.resolve()}" + (f"; recording to {Path(args.record).resolve()}" if args.record else ""),
-          flush=True)
-    return launch(args.graph, bag=args.bag, params_file=args.params_file, linger_s=args.linger,
-                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}},
-                  extra=extra)
+          f"{history.resolve()}" + (f"; namespace {kwargs['namespace']}" if kwargs["namespace"] else "")
+          + (f"; recording to {Path(args.record).resolve()}" if args.record else ""), flush=True)
+    return launch(args.graph, extra=extra, **kwargs)

@@ -8,7 +8,7 @@ channels, its time/position span, the union band; per-channel bands in ``detail_
 flushes the open incident when the node shuts down. The report's header stamp is the stream time
 at which the incident was concluded (monotonic; a late-arriving channel's earlier incident says
 "reported late"), its t0_s/t1_s the incident itself. Thin adapter: the logic is in the core.
-Parameters (see the core's docstring): ``threshold`` (10, residual power / noise floor),
+Parameters (``PARAMS``, with descriptions and ranges; see the core's docstring): ``threshold`` (10, residual power / noise floor),
 ``frame_s`` (0.5), ``hop_s`` (0.25), ``min_frames`` (2), ``max_s`` (5, longest incident),
 ``merge_gap_s`` (1, runs closer than this are one incident), ``allowance_factor`` (4, x the learned
 peak residual of earlier passes), ``learn_rate`` (0.1), ``learn_rate_reported`` (1),
@@ -41,8 +41,10 @@ from maglev_msgs.msg import MismatchReport, SensorBlock
 from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.discrepancy.online import OnlineDetector
 from maglev_ros.errors import ContractError
-from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import local_topic, publisher, subscription
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 TOPIC_DIAGNOSIS = "/maglev/diagnosis"
@@ -50,41 +52,69 @@ RESIDUAL_PREFIX = "/maglev/twin/residual/"
 # the measured streams the twin's residual groups are computed from
 MEASURED_TOPICS = tuple(t for t in DATA_TOPICS if t != TOPIC_VEHICLE_POSITION)
 
+# the online detector's settings (OnlineDetector), read at construction
+PARAMS = (
+    Param("frame_s", 0.5, "analysis frame of the residual [s]", range=(0.01, 600.0)),
+    Param("hop_s", 0.25, "hop between frames [s]", range=(0.001, 600.0)),
+    Param("threshold", 10.0, "residual power / noise floor that counts as a mismatch", range=(1.0, 1e9)),
+    Param("min_frames", 2, "frames in a row above the threshold that open an incident", range=(1, 10000)),
+    Param("max_s", 5.0, "longest incident [s]", range=(0.01, 86400.0)),
+    Param("merge_gap_s", 1.0, "runs closer than this are one incident [s]", range=(0.0, 86400.0)),
+    Param("allowance_factor", 4.0, "times the peak residual learned on earlier passes that is tolerated",
+          range=(0.0, 1e6)),
+    Param("learn_rate", 0.1, "learning rate of the tolerated residual", range=(0.0, 1.0)),
+    Param("learn_rate_reported", 1.0, "learning rate after a reported incident", range=(0.0, 1.0)),
+    Param("rel_allowance", 0.1, "tolerated residual / measured amplitude (0: off)", range=(0.0, 1e3)),
+    Param("measured_topics", list(MEASURED_TOPICS), "measured streams the relative allowance and the "
+                                                     "diagnosis read"),
+    Param("live_diagnosis", True, "diagnose each recording as maglev-ros diagnose does"),
+    Param("recording_idle_s", 2.0, "no data for this long (wall time) ends a recording [s]",
+          range=(0.01, 1e9), apply=lambda node, v: setattr(node, "idle_s", v)),
+)
+
+
+def diagnosis_params(config) -> tuple[Param, ...]:
+    """The diagnosis' settings (declared with live_diagnosis), defaults from ``config``
+    (DiagnoseConfig, imported only then: it takes seconds)."""
+    return (
+        Param("n_top", config.n_top, "physics hypotheses fully fitted after screening", range=(0, 1000)),
+        Param("fit_every_effect", config.fit_every_effect, "also fit the best of every further effect "
+                                                           "(false: the n_top only)"),
+        Param("max_passes", 2, "latest passes diagnosed together with the ambient recording", range=(1, 100)),
+    )
+
 
 class DiscrepancyNode(Node):
     def __init__(self) -> None:
         super().__init__("discrepancy")
-        def num(name, default):
-            return float(self.declare_parameter(name, default).value)
+        v = declare(self, PARAMS)
         self.detector = OnlineDetector(
-            frame_s=num("frame_s", 0.5), hop_s=num("hop_s", 0.25), threshold=num("threshold", 10.0),
-            min_frames=int(self.declare_parameter("min_frames", 2).value), max_s=num("max_s", 5.0),
-            merge_gap_s=num("merge_gap_s", 1.0), allowance_factor=num("allowance_factor", 4.0),
-            learn_rate=num("learn_rate", 0.1), learn_rate_reported=num("learn_rate_reported", 1.0),
-            rel_allowance=num("rel_allowance", 0.1))
-        measured = list(self.declare_parameter("measured_topics", list(MEASURED_TOPICS)).value or [])
-        self.live = bool(self.declare_parameter("live_diagnosis", True).value)
-        self.idle_s = num("recording_idle_s", 2.0)
-        self.pub = self.create_publisher(MismatchReport, TOPIC_MISMATCH, QOS_STREAM)
-        self.pub_diag = self.create_publisher(String, TOPIC_DIAGNOSIS, QOS_LATCHED)
+            frame_s=v["frame_s"], hop_s=v["hop_s"], threshold=v["threshold"], min_frames=v["min_frames"],
+            max_s=v["max_s"], merge_gap_s=v["merge_gap_s"], allowance_factor=v["allowance_factor"],
+            learn_rate=v["learn_rate"], learn_rate_reported=v["learn_rate_reported"],
+            rel_allowance=v["rel_allowance"])
+        measured = list(v["measured_topics"] or [])
+        self.live = v["live_diagnosis"]
+        self.idle_s = v["recording_idle_s"]
+        self.pub = publisher(self, MismatchReport, TOPIC_MISMATCH)
+        self.pub_diag = publisher(self, String, TOPIC_DIAGNOSIS)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         self.subs = {}
-        self.create_subscription(SensorBlock, TOPIC_VEHICLE_POSITION, self._on_position, QOS_STREAM)
+        subscription(self, SensorBlock, TOPIC_VEHICLE_POSITION, self._on_position)
         if self.detector.rel_allowance > 0 or self.live:
             for topic in measured:
                 if topic:
-                    self.create_subscription(SensorBlock, topic, self._on_measured(topic), QOS_STREAM)
+                    subscription(self, SensorBlock, topic, self._on_measured(topic))
         self.assembler = self.diagnoser = None
         if self.live:
             from maglev_ros.discrepancy.live import LiveDiagnoser, RecordingAssembler
             self.assembler = RecordingAssembler(source=self.get_fully_qualified_name())
             from maglev_ros.discrepancy.diagnose import DiagnoseConfig
-            cfg = DiagnoseConfig(n_top=int(self.declare_parameter("n_top", DiagnoseConfig.n_top).value),
-                                 fit_every_effect=bool(self.declare_parameter(
-                                     "fit_every_effect", DiagnoseConfig.fit_every_effect).value))
-            self.diagnoser = LiveDiagnoser(cfg, max_passes=int(self.declare_parameter("max_passes", 2).value))
-            self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
+            d = declare(self, diagnosis_params(DiagnoseConfig))
+            cfg = DiagnoseConfig(n_top=d["n_top"], fit_every_effect=d["fit_every_effect"])
+            self.diagnoser = LiveDiagnoser(cfg, max_passes=d["max_passes"])
+            subscription(self, String, TOPIC_METADATA, self._on_metadata)
             self._lock = threading.Lock()           # the assembler is fed by callbacks, emptied by the timer
             self._last_data = None
             self._metadata = None
@@ -95,9 +125,11 @@ class DiscrepancyNode(Node):
         self._discover()
 
     def _discover(self) -> None:
-        for name, types in self.get_topic_names_and_types():
-            if name.startswith(RESIDUAL_PREFIX) and name not in self.subs and "maglev_msgs/msg/SensorBlock" in types:
-                self.subs[name] = self.create_subscription(SensorBlock, name, self._on_residual(name), QOS_STREAM)
+        for fq_name, types in self.get_topic_names_and_types():
+            name = local_topic(self, fq_name)       # only the residuals of our own namespace
+            if (name is not None and name.startswith(RESIDUAL_PREFIX) and name not in self.subs
+                    and "maglev_msgs/msg/SensorBlock" in types):
+                self.subs[name] = subscription(self, SensorBlock, name, self._on_residual(name))
 
     def _on_position(self, msg) -> None:
         b = self.gate.block(msg, TOPIC_VEHICLE_POSITION)

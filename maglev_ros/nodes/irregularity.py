@@ -5,9 +5,9 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 
-Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
-spacing_m (0.25), band_speed_mps (0: 80% of the metadata's nominal speed, else 15 km/h),
-max_profile_m (0: unbounded), publish_period_s (1.0).
+Parameters (``PARAMS``, with descriptions and ranges): highpass_hz (0: chosen from the stream by
+the rule of ``maglev-ros irregularity``), spacing_m (0.25), band_speed_mps (0: 80% of the
+metadata's nominal speed, else 15 km/h), max_profile_m (0: unbounded), publish_period_s (1.0, live).
 """
 from __future__ import annotations
 
@@ -22,34 +22,52 @@ from maglev_msgs.msg import IrregularityProfile, SensorBlock
 from maglev_ros.contract import (TOPIC_METADATA, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                  TOPIC_VEHICLE_POSITION, parse_metadata)
 from maglev_ros.errors import UserError
-from maglev_ros.nodes._common import QOS_LATCHED, BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import publisher, subscription
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
+
+PARAMS = (
+    Param("highpass_hz", 0.0, "high-pass corner of the integration [Hz] (0: chosen from the stream, "
+                              "as maglev-ros irregularity does)", range=(0.0, 100.0)),
+    Param("spacing_m", 0.25, "spacing of the published profile [m]", range=(0.001, 10.0)),
+    Param("band_speed_mps", 0.0, "speed that sets the valid wavelength band [m/s] (0: 80% of the "
+                                 "metadata's nominal speed, else 15 km/h)", range=(0.0, 200.0)),
+    Param("max_profile_m", 0.0, "longest profile kept [m] (0: unbounded)", range=(0.0, 1e7)),
+    Param("publish_period_s", 1.0, "wall-time period of publishing the grown profile [s]",
+          range=(0.01, 1e9), apply=lambda node, v: node.set_publish_period(v)),
+)
 
 
 class IrregularityNode(Node):
     def __init__(self) -> None:
         super().__init__("irregularity")
-        p = self.declare_parameter
-        self.highpass_hz = p("highpass_hz", 0.0).value or None     # 0: the offline verb's rule
-        self.spacing_m = p("spacing_m", 0.25).value
-        self.band_speed_mps = p("band_speed_mps", 0.0).value
-        self.max_profile_m = p("max_profile_m", 0.0).value
-        period = p("publish_period_s", 1.0).value
+        v = declare(self, PARAMS)
+        self.highpass_hz = v["highpass_hz"] or None     # 0: the offline verb's rule
+        self.spacing_m = v["spacing_m"]
+        self.band_speed_mps = v["band_speed_mps"]
+        self.max_profile_m = v["max_profile_m"]
+        period = v["publish_period_s"]
         self.profiler = None
         self.pending: list[tuple[str, object]] = []
         self.last_stamp_ns = 0
         self.published_signature = None
         self.warned: set = set()
-        self.pub = self.create_publisher(IrregularityProfile, TOPIC_IRREGULARITY, QOS_LATCHED)
+        self.pub = publisher(self, IrregularityProfile, TOPIC_IRREGULARITY)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
-        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
+        subscription(self, String, TOPIC_METADATA, self._on_metadata)
         for topic, key in ((TOPIC_VEHICLE_ACCEL, "accel"), (TOPIC_VEHICLE_GAP, "gap"),
                            (TOPIC_VEHICLE_POSITION, "position")):
-            self.create_subscription(SensorBlock, topic, self._on_block(topic, key), qos_for(topic))
-        self.create_timer(period, self._publish)
+            subscription(self, SensorBlock, topic, self._on_block(topic, key))
+        self.timer = self.create_timer(period, self._publish)
+
+    def set_publish_period(self, period_s: float) -> None:
+        """The ``publish_period_s`` parameter's live change."""
+        self.destroy_timer(self.timer)
+        self.timer = self.create_timer(period_s, self._publish)
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs

@@ -4,10 +4,11 @@ Sliding-window SSI-cov (``maglev_ros.modal.tracking.OnlineModalID``) with modes 
 updates (stable ids, "new"/"lost"); publishes maglev_msgs/ModalEstimate on /maglev/modes after
 every update (every ``update_s`` of stream time once ``window_s`` has filled).
 
-Parameters (also from YAML: ``--params-file config/modal_id.yaml``): window_s (120), update_s
-(2), decimate_to_hz (500; 0 = none), block_rows (40), max_order (60), order_step (4), fmin_hz
-(5), fmax_hz (150), n_blocks (6), freq_tol (0.03), mac_min (0.8), max_misses (3),
-min_confirm (2), channels (string[]; default: every vertical guideway accelerometer).
+Parameters (also from YAML: ``--params-file config/modal_id.yaml``; read-only, descriptions and
+ranges in ``DESCRIPTIONS``): window_s (120), update_s (2), decimate_to_hz (500; 0 = none),
+block_rows (40), max_order (60), order_step (4), fmin_hz (5), fmax_hz (150), n_blocks (6),
+freq_tol (0.03), mac_min (0.8), max_misses (3), min_confirm (2), channels (string[]; default:
+every vertical guideway accelerometer).
 """
 from __future__ import annotations
 
@@ -20,29 +21,54 @@ from std_msgs.msg import String
 from maglev_msgs.msg import ModalEstimate, ModalMode, SensorBlock
 from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, parse_metadata
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
-from maglev_ros.nodes._common import BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import publisher, subscription
 
 TOPIC_MODES = "/maglev/modes"
+# the parameters are OnlineModalConfig's fields (defaults from there): description, range
+DESCRIPTIONS = {
+    "window_s": ("stream time per identification [s]", (0.1, 3600.0)),
+    "update_s": ("stream time between identifications [s]", (0.01, 3600.0)),
+    "decimate_to_hz": ("decimate the stream to this rate before SSI [Hz] (0: none)", (0.0, 1e6)),
+    "block_rows": ("block rows of the SSI Hankel matrix", (1, 100000)),
+    "max_order": ("highest model order of the stabilization diagram", (1, 100000)),
+    "order_step": ("step between model orders", (1, 1000)),
+    "fmin_hz": ("lowest frequency of a mode [Hz]", (0.0, 1e6)),
+    "fmax_hz": ("highest frequency of a mode [Hz]", (0.0, 1e6)),
+    "n_blocks": ("blocks of the covariance estimate (its uncertainty)", (1, 100000)),
+    "freq_tol": ("relative frequency tolerance when tracking a mode", (0.0, 1.0)),
+    "mac_min": ("lowest MAC when tracking a mode", (0.0, 1.0)),
+    "max_misses": ("updates a mode may miss before it is lost", (0, 100000)),
+    "min_confirm": ("updates a new mode needs before it is published as tracked", (0, 100000)),
+}
+
+
+def _params() -> tuple[Param, ...]:
+    out = []
+    for f in fields(OnlineModalConfig):
+        default = getattr(OnlineModalConfig(), f.name)
+        text, rng = DESCRIPTIONS.get(f.name, (f"OnlineModalConfig.{f.name} (maglev_ros.modal.tracking)", None))
+        out.append(Param(f.name, 0.0 if default is None else default, text, range=rng))
+    out.append(Param("channels", [""], "guideway accelerometer channels to identify from (empty: every "
+                                       "vertical one in the metadata)"))
+    return tuple(out)
 
 
 class ModalIdNode(Node):
     def __init__(self) -> None:
         super().__init__("modal_id")
-        defaults = OnlineModalConfig()
-        values = {}
-        for f in fields(OnlineModalConfig):
-            default = getattr(defaults, f.name)
-            v = self.declare_parameter(f.name, 0.0 if default is None else default).value
-            values[f.name] = (None if f.name == "decimate_to_hz" and not v else v)
+        v = declare(self, _params())
+        values = {f.name: v[f.name] for f in fields(OnlineModalConfig)}
+        values["decimate_to_hz"] = values["decimate_to_hz"] or None
         self.core = OnlineModalID(OnlineModalConfig(**values))
-        self.wanted = [c for c in self.declare_parameter("channels", [""]).value if c]
-        self.pub = self.create_publisher(ModalEstimate, TOPIC_MODES, qos_for(TOPIC_MODES))
+        self.wanted = [c for c in v["channels"] if c]
+        self.pub = publisher(self, ModalEstimate, TOPIC_MODES)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
-        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
-        self.create_subscription(SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block,
-                                 qos_for(TOPIC_GUIDEWAY_ACCEL))
+        subscription(self, String, TOPIC_METADATA, self._on_metadata)
+        subscription(self, SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block)
 
     def _on_metadata(self, msg) -> None:
         self.gate.new_stream()

@@ -2,9 +2,9 @@
 
 Used by ``maglev-ros demo`` to show that a replay went through the node graph: per topic the
 messages, SensorBlock samples, stamp range and any out-of-order or repeated stamps. Topics are
-discovered from the graph (every /testline/* and /maglev/* topic). Parameters: ``idle_s``
-(stop this long after the last message, default 3), ``max_s`` (hard stop, default 600),
-``json_out`` (also write the summary as JSON to this path).
+discovered from the graph (every /testline/* and /maglev/* topic of the node's namespace, named
+without it). Parameters: ``idle_s`` (stop this long after the last message, default 3, live),
+``max_s`` (hard stop, default 600, live), ``json_out`` (also write the summary as JSON to this path).
 """
 from __future__ import annotations
 
@@ -13,15 +13,24 @@ import time
 
 from rclpy.node import Node
 
-from maglev_ros.nodes._common import message_class, qos_for, run_node
+from maglev_ros.nodes._common import message_class, run_node
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import local_topic, subscription
+
+PARAMS = (
+    Param("idle_s", 3.0, "stop this long after the last message [s]", range=(0.0, 1e9),
+          apply=lambda node, v: setattr(node, "idle_s", v)),
+    Param("max_s", 600.0, "stop this long after the start at the latest [s]", range=(0.0, 1e7),
+          apply=lambda node, v: setattr(node, "max_s", v)),
+    Param("json_out", "", "also write the summary as JSON to this path (empty: none)"),
+)
 
 
 class SummaryNode(Node):
     def __init__(self) -> None:
         super().__init__("summary")
-        self.idle_s = self.declare_parameter("idle_s", 3.0).value
-        self.max_s = self.declare_parameter("max_s", 600.0).value
-        self.json_out = self.declare_parameter("json_out", "").value
+        v = declare(self, PARAMS)
+        self.idle_s, self.max_s, self.json_out = v["idle_s"], v["max_s"], v["json_out"]
         self.stats: dict[str, dict] = {}
         self.t_start = time.monotonic()
         self.t_last = None
@@ -30,15 +39,16 @@ class SummaryNode(Node):
         self.create_timer(0.2, self._tick)
 
     def _subscribe_new(self) -> None:
-        for name, types in self.get_topic_names_and_types():
-            if name in self.stats or not name.startswith(("/testline/", "/maglev/")):
+        for fq_name, types in self.get_topic_names_and_types():
+            name = local_topic(self, fq_name)     # the graph's name within our namespace
+            if name is None or name in self.stats or not name.startswith(("/testline/", "/maglev/")):
                 continue
             cls = message_class(types[0])
             if cls is None:
                 continue
             self.stats[name] = {"type": types[0], "messages": 0, "samples": 0, "first_stamp_s": None,
                                 "last_stamp_s": None, "out_of_order": 0, "repeated": 0}
-            self.create_subscription(cls, name, self._cb(name), qos_for(name))
+            subscription(self, cls, name, self._cb(name))
 
     def _cb(self, topic: str):
         st = self.stats[topic]

@@ -15,8 +15,9 @@ a vehicle residual block is published only when valid (every magnet over the mea
 settled); its prediction is always published. When the input stops for ``idle_flush_s`` (end of
 a replay), the queued remainder is stepped with the final profile and published.
 
-Parameters: ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush_s`` (2.0),
-``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
+Parameters (``PARAMS``, with descriptions and ranges; read at construction except
+``idle_flush_s``): ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush_s`` (2.0,
+live), ``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
 ``seed`` (0), ``method`` (newmark | separated), ``fs_hz`` (0 = fastest measured rate),
 ``dt_max_s`` (2.5e-4), ``resync_m`` (0.05).
 """
@@ -31,12 +32,36 @@ from std_msgs.msg import String
 
 from maglev_msgs.msg import IrregularityProfile, SensorBlock, TwinParameters
 from maglev_ros.contract import parse_metadata
-from maglev_ros.nodes._common import QOS_STREAM, BlockGate, qos_for, run_node
+from maglev_ros.nodes._common import BlockGate, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import publisher, subscription
+from maglev_ros.twin.coupling import METHODS
+from maglev_ros.twin.online import IRREGULARITY_SOURCES
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 TOPIC_PARAMETERS = "/maglev/twin/parameters"
 MAX_EARLY_BLOCKS = 2000
+
+PARAMS = (
+    Param("irregularity_psd", "maglev_001", "irregularity PSD of the random profile (irregularity_source "
+                                            "random)"),
+    Param("irregularity_band_m", [1.0, 20.0], "wavelength band of the random profile [m] (low, high)"),
+    Param("seed", 0, "seed of the random profile", range=(0, 2**31 - 1)),
+    Param("method", "newmark", "vehicle/guideway coupling", choices=METHODS),
+    Param("fs_hz", 0.0, "prediction rate [Hz] (0: the fastest measured rate)", range=(0.0, 1e6)),
+    Param("dt_max_s", 2.5e-4, "longest integration step [s]", range=(1e-7, 0.1)),
+    Param("resync_m", 0.05, "position error at which the twin's vehicle is put back on the measured "
+                            "position [m]", range=(0.0, 1e4)),
+    Param("irregularity_source", "vehicle", "rail irregularity under the vehicle: measured from the "
+                                            "vehicle streams, the /maglev/irregularity topic, or random",
+          choices=IRREGULARITY_SOURCES),
+    Param("max_lag_s", 6.0, "how far the twin may lag the stream while the rail ahead is measured [s]",
+          range=(0.0, 3600.0)),
+    Param("idle_flush_s", 2.0, "no input for this long (wall time) ends the stream: the queued "
+                               "remainder is stepped and published [s]", range=(0.0, 1e9),
+          apply=lambda node, v: setattr(node, "idle_flush_s", v)),
+)
 
 
 def _to_msg(block) -> SensorBlock:
@@ -57,19 +82,19 @@ class TwinNode(Node):
     def __init__(self) -> None:
         super().__init__("twin")
         from maglev_ros.twin.online import GROUP_TOPICS, PREDICTED_PREFIX, RESIDUAL_PREFIX
-        p = self.declare_parameter
+        v = declare(self, PARAMS)
         self.opts = {
-            "psd": p("irregularity_psd", "maglev_001").value,
-            "band_m": list(p("irregularity_band_m", [1.0, 20.0]).value),
-            "seed": int(p("seed", 0).value),
-            "method": p("method", "newmark").value,
-            "fs_hz": float(p("fs_hz", 0.0).value) or None,
-            "dt_max_s": float(p("dt_max_s", 2.5e-4).value),
-            "resync_m": float(p("resync_m", 0.05).value),
-            "irregularity_source": str(p("irregularity_source", "vehicle").value),
-            "max_lag_s": float(p("max_lag_s", 6.0).value),
+            "psd": v["irregularity_psd"],
+            "band_m": list(v["irregularity_band_m"]),
+            "seed": v["seed"],
+            "method": v["method"],
+            "fs_hz": v["fs_hz"] or None,
+            "dt_max_s": v["dt_max_s"],
+            "resync_m": v["resync_m"],
+            "irregularity_source": v["irregularity_source"],
+            "max_lag_s": v["max_lag_s"],
         }
-        self.idle_flush_s = float(p("idle_flush_s", 2.0).value)
+        self.idle_flush_s = v["idle_flush_s"]
         self.last_input = time.monotonic()
         self.said: set = set()
         self.core = None
@@ -80,13 +105,14 @@ class TwinNode(Node):
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         for g in GROUP_TOPICS:
-            self.pubs[PREDICTED_PREFIX + g] = self.create_publisher(SensorBlock, PREDICTED_PREFIX + g, QOS_STREAM)
-            self.pubs[RESIDUAL_PREFIX + g] = self.create_publisher(SensorBlock, RESIDUAL_PREFIX + g, QOS_STREAM)
-        self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
+            self.pubs[PREDICTED_PREFIX + g] = publisher(self, SensorBlock, PREDICTED_PREFIX + g)
+            self.pubs[RESIDUAL_PREFIX + g] = publisher(self, SensorBlock, RESIDUAL_PREFIX + g)
+        subscription(self, String, "/testline/metadata", self._on_metadata)
         for topic in ("/testline/vehicle/position", *GROUP_TOPICS.values()):
-            self.create_subscription(SensorBlock, topic, self._cb(topic), QOS_STREAM)
-        self.create_subscription(IrregularityProfile, TOPIC_IRREGULARITY, self._on_profile, QOS_STREAM)
-        self.create_subscription(TwinParameters, TOPIC_PARAMETERS, self._on_params, qos_for(TOPIC_PARAMETERS))
+            subscription(self, SensorBlock, topic, self._cb(topic))
+        # latched, as published: the twin gets the newest profile whenever it joins
+        subscription(self, IrregularityProfile, TOPIC_IRREGULARITY, self._on_profile)
+        subscription(self, TwinParameters, TOPIC_PARAMETERS, self._on_params)
         self.n_in = 0
         self.n_out = 0
         self.create_timer(0.5, self._idle)

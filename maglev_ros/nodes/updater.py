@@ -10,11 +10,11 @@ of the metadata's line and design blocks). When the metadata arrives, the last r
 is republished, so a restarted node (and a late twin) get the current parameters; records of
 another line are never loaded, and the log says what was loaded and from where.
 
-Parameters: ``history_path`` (default unset: memory only; ``maglev-ros launch`` sets it in its
-``--out`` directory), ``freq_rel_tol`` (2e-3),
-``n_sigma`` (3.0), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15),
+Parameters (``PARAMS``, with descriptions and ranges): ``history_path`` (default unset: memory
+only; ``maglev-ros launch`` sets it in its ``--out`` directory), ``freq_rel_tol`` (2e-3, live),
+``n_sigma`` (3.0, live), ``max_modes`` (4), ``magnet_min_s`` (3.0), ``nrmse_trigger`` (0.15, live),
 ``max_window_s`` (8.0), ``max_lag_s`` (10.0: extra seconds of vehicle streams kept, as the twin's
-residuals lag the stream), ``min_speed_mps`` (0.1), ``magnet_layer`` (true: run it when the
+residuals lag the stream), ``min_speed_mps`` (0.1), ``magnet_layer`` (true, live: run it when the
 residual warrants). Residual blocks with NaN (the twin had no measured irregularity under every
 magnet) or of a parameter revision older than the accepted one (frame_id "twin rev <n>") are
 never judged; why the magnet layer waits is logged once per reason.
@@ -33,8 +33,10 @@ from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
 from maglev_ros.contract import parse_metadata
-from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node
+from maglev_ros.nodes._common import BlockGate, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import publisher, subscription
 
 TOPIC_PARAMETERS = "/maglev/twin/parameters"
 TOPIC_MODES = "/maglev/modes"
@@ -42,29 +44,54 @@ TOPIC_RESIDUAL = "/maglev/twin/residual/vehicle_accel"
 VEHICLE_TOPICS = ("/testline/vehicle/accel", "/testline/vehicle/gap", "/testline/vehicle/position")
 
 
+def _core(attr):
+    """A live change of the core's setting ``attr`` (read by the core at each decision)."""
+    return lambda node, value: setattr(node.core, attr, value)
+
+
+PARAMS = (
+    Param("history_path", "", "parameter history file (JSON lines, append-only, one writer; empty: "
+                              "memory only)"),
+    Param("freq_rel_tol", 2e-3, "relative frequency change of a mode that calls for a guideway update",
+          range=(0.0, 1.0), apply=_core("freq_rel_tol")),
+    Param("n_sigma", 3.0, "a change must exceed this many standard deviations", range=(0.0, 100.0),
+          apply=_core("n_sigma")),
+    Param("max_modes", 4, "modes used by the guideway layer", range=(1, 100)),
+    Param("magnet_min_s", 3.0, "shortest window of valid residuals for the magnet layer [s]",
+          range=(0.0, 3600.0)),
+    Param("nrmse_trigger", 0.15, "residual NRMSE above which the magnet layer runs", range=(0.0, 100.0),
+          apply=_core("nrmse_trigger")),
+    Param("max_window_s", 8.0, "longest window of the magnet layer [s]", range=(0.1, 3600.0)),
+    Param("max_lag_s", 10.0, "extra vehicle stream kept, as the twin's residuals lag the stream [s]",
+          range=(0.0, 3600.0)),
+    Param("min_speed_mps", 0.1, "slowest vehicle speed the magnet layer judges [m/s]", range=(0.0, 200.0)),
+    Param("magnet_layer", True, "run the magnet layer when the residual warrants",
+          apply=lambda node, v: setattr(node, "magnet_enabled", v)),
+)
+
+
 class UpdaterNode(Node):
     def __init__(self) -> None:
         super().__init__("updater")
         from maglev_ros.updating.online import OnlineUpdater
-        p = self.declare_parameter
+        v = declare(self, PARAMS)
         self.core = OnlineUpdater(
-            p("history_path", "").value or None,
-            freq_rel_tol=float(p("freq_rel_tol", 2e-3).value), n_sigma=float(p("n_sigma", 3.0).value),
-            max_modes=int(p("max_modes", 4).value), magnet_min_s=float(p("magnet_min_s", 3.0).value),
-            nrmse_trigger=float(p("nrmse_trigger", 0.15).value), max_window_s=float(p("max_window_s", 8.0).value),
-            max_lag_s=float(p("max_lag_s", 10.0).value), min_speed_mps=float(p("min_speed_mps", 0.1).value))
+            v["history_path"] or None,
+            freq_rel_tol=v["freq_rel_tol"], n_sigma=v["n_sigma"], max_modes=v["max_modes"],
+            magnet_min_s=v["magnet_min_s"], nrmse_trigger=v["nrmse_trigger"], max_window_s=v["max_window_s"],
+            max_lag_s=v["max_lag_s"], min_speed_mps=v["min_speed_mps"])
         self.n_logged = 0
-        self.magnet_enabled = bool(p("magnet_layer", True).value)
-        self.pub = self.create_publisher(TwinParameters, TOPIC_PARAMETERS, QOS_LATCHED)
+        self.magnet_enabled = v["magnet_layer"]
+        self.pub = publisher(self, TwinParameters, TOPIC_PARAMETERS)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         self.lock = threading.Lock()
         self.worker: threading.Thread | None = None
-        self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
-        self.create_subscription(ModalEstimate, TOPIC_MODES, self._on_modes, QOS_STREAM)
-        self.create_subscription(SensorBlock, TOPIC_RESIDUAL, self._on_residual, QOS_STREAM)
+        subscription(self, String, "/testline/metadata", self._on_metadata)
+        subscription(self, ModalEstimate, TOPIC_MODES, self._on_modes)
+        subscription(self, SensorBlock, TOPIC_RESIDUAL, self._on_residual)
         for t in VEHICLE_TOPICS:
-            self.create_subscription(SensorBlock, t, self._vehicle(t), QOS_STREAM)
+            subscription(self, SensorBlock, t, self._vehicle(t))
         self.line: str | None = None      # line key of the metadata the history was restored for
         if self.core.history.path is None:
             self.get_logger().warning("history_path not set: accepted parameters are kept in memory only")

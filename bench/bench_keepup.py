@@ -487,6 +487,10 @@ def print_run(r: dict, peer: dict | None) -> None:
     if r["paced_by"]:
         print(f"  the replay was held back by the reliable subscribers of {', '.join(r['paced_topics'])}: "
               f"{', '.join(r['paced_by'])}")
+    lost = sum(t.get("lost", 0) for t in r["topics"])
+    if lost:
+        print(f"  the probe (best effort) lost {lost} of {sum(t['received'] for t in r['topics']) + lost} messages "
+              "under this load: the figures are of the rest (--reliable-probe takes all, and joins the back-pressure)")
     lat = r["probe_latency_s"]
     print(f"  probe latency (replay publish -> probe receive): median {_f(lat['median'] * 1e3, '{:.1f}')} ms, "
           f"max {_f(lat['max'] * 1e3, '{:.1f}')} ms")

@@ -196,12 +196,16 @@ class ModalBasis:
             nels = np.array([fe.n_elements for fe in self.spans_fe])
             les = np.array([fe.element_length_m for fe in self.spans_fe])
             order = np.argsort(starts)
-            tab = (T, starts, ends, nels, les, order)
+            nmods = np.array([vec.shape[1] for vec in self.vectors])
+            cols = np.concatenate([[0], np.cumsum(nmods)])
+            # each span's own columns only (the others are zero there), for _eval's span-local sum
+            T_own = [T[k][:, cols[k]:cols[k + 1]] for k in range(len(self.spans_fe))]
+            tab = (T, starts, ends, nels, les, order, cols, T_own)
             object.__setattr__(self, "_tab", tab)
         return tab
 
     def _eval(self, x_m, deriv: bool) -> np.ndarray:
-        T, starts, ends, nels, les, order = self._table()
+        T, starts, ends, nels, les, order, cols, T_own = self._table()
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
         # span of each point: last span (by start) with start <= x; half-open except the last
         pos = np.searchsorted(starts[order], x, side="right") - 1
@@ -219,9 +223,14 @@ class ModalBasis:
         else:
             xi3 = xi2 * xi
             H = (1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3, le * (-xi2 + xi3))
-        out = H[0][:, None] * T[k, 2 * e] + H[1][:, None] * T[k, 2 * e + 1] \
-            + H[2][:, None] * T[k, 2 * e + 2] + H[3][:, None] * T[k, 2 * e + 3]
-        out[~valid] = 0.0
+        # a mode lives on one span: sum over each point's own span's modes only (the twin evaluates
+        # every step's magnet positions; over all modes of a long line this was a fifth of its time)
+        out = np.zeros((x.size, self.n_modes))
+        for span in np.unique(k[valid]):
+            i = np.flatnonzero(valid & (k == span))
+            Ts, ei = T_own[span], e[i]
+            out[i, cols[span]:cols[span + 1]] = H[0][i, None] * Ts[2 * ei] + H[1][i, None] * Ts[2 * ei + 1] \
+                + H[2][i, None] * Ts[2 * ei + 2] + H[3][i, None] * Ts[2 * ei + 3]
         return out
 
     def shapes_at(self, x_m) -> np.ndarray:

@@ -12,9 +12,17 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def domain_id(base: int) -> int:
+    """A ROS domain for one test's graph, never the one a test running at the same time in another
+    pytest-xdist worker uses: worker w of n takes the domains = w (mod n), all within Fast DDS's 0-232."""
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    return worker + workers * ((base + os.getpid()) % (230 // workers))
+
+
 def ros_env(domain_base: int) -> dict:
     """Environment for one test's graph: its own domain id, DDS on loopback, the repo on path."""
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain_base + os.getpid() % 40),
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id(domain_base)),
                 ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(HERE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 

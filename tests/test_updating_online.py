@@ -15,6 +15,7 @@ import pytest
 
 from updating_data import ambient_metadata, true_modes
 from maglev_ros.updating.online import OnlineUpdater
+from rosgraph import domain_id
 
 HERE = Path(__file__).resolve().parent
 DESIGN = {"guideway": {"youngs_modulus_pa": 3.9e10, "density_kg_m3": 2500.0, "area_m2": 1.48,
@@ -98,7 +99,7 @@ def test_history_without_a_path_stays_in_memory(tmp_path, monkeypatch):
 
 
 def _env():
-    return dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id(100)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(HERE.parent) + os.pathsep + str(HERE) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
 

@@ -16,6 +16,8 @@ class NodeSpec:
     # a processing node ends only when stopped: its end while the graph runs (even with exit
     # code 0, e.g. an outside SIGTERM) is a failure of the graph
     runs_until_stopped: bool = False
+    # watches the graph (the live view): the replay does not wait for it, nor for its results
+    observer: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {
@@ -32,6 +34,22 @@ GRAPHS: dict[str, list[NodeSpec]] = {
                  runs_until_stopped=True),
     ],
 }
+
+
+VIEW_PORT = 8765          # Foxglove's usual WebSocket port
+
+
+def view_node(host: str = "127.0.0.1", port: int = VIEW_PORT) -> NodeSpec:
+    """The live view (Foxglove bridge) beside a graph: ``maglev-ros launch GRAPH --view``."""
+    return NodeSpec("foxglove_bridge", "maglev_ros.nodes.foxglove_bridge", params={"host": host, "port": int(port)},
+                    runs_until_stopped=True, observer=True)
+
+
+def view_urls(host: str, port: int) -> tuple[str, str]:
+    """(the Foxglove app's URL that opens the live view, the plain WebSocket URL)."""
+    shown = "localhost" if host in ("127.0.0.1", "0.0.0.0", "") else host
+    ws = f"ws://{shown}:{int(port)}"
+    return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={ws}", ws
 
 
 def graph(name: str) -> list[NodeSpec]:

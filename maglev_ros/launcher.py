@@ -78,13 +78,14 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
     failures: list[str] = []
     penv = dict(os.environ if env is None else env)
     specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
-    others = [s.name for s in specs if not s.needs_bag]
+    others = [s.name for s in specs if not s.needs_bag and not s.observer]
     try:
         for spec in specs:
             params = dict(spec.params)
             if spec.needs_bag:
                 params["bag"] = os.path.abspath(bag)
-                params.update({"wait_nodes": others, "wait_subscribers": 1, "wait_timeout_s": 60.0,
+                # [""]: no node to wait for (observers only); an empty list has no ROS parameter type
+                params.update({"wait_nodes": others or [""], "wait_subscribers": 1, "wait_timeout_s": 60.0,
                                "linger_s": float(linger_s)})
             params.update(overrides.get(spec.name, {}))
             cmd = [sys.executable, "-u", "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]

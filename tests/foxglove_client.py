@@ -157,6 +157,7 @@ class FoxgloveClient:
         self.unadvertised: list[str] = []              # topics of channels the server took back
         self.other: list[dict] = []                     # other text ops (status, ...)
         self.server_time_ns: int | None = None
+        self.closed = False
         self._next_sub = 1
         self._types: dict[str, dict] = {}
 
@@ -185,12 +186,16 @@ class FoxgloveClient:
         return payload
 
     def poll(self, seconds: float) -> None:
-        """Handle what arrives for ``seconds``."""
+        """Handle what arrives for ``seconds`` (until the server closes the connection)."""
+        from websockets.exceptions import ConnectionClosed
         end = time.monotonic() + seconds
         while (left := end - time.monotonic()) > 0:
             try:
                 frame = self.ws.recv(timeout=left)
             except TimeoutError:
+                return
+            except ConnectionClosed:              # the server stopped
+                self.closed = True
                 return
             if isinstance(frame, str):
                 d = json.loads(frame)
@@ -215,9 +220,10 @@ class FoxgloveClient:
                 self.server_time_ns = struct.unpack_from("<Q", frame, 1)[0]
 
     def wait_for(self, condition, timeout_s: float) -> bool:
-        """Poll until ``condition(self)`` holds (True) or ``timeout_s`` passes (False)."""
+        """Poll until ``condition(self)`` holds (True), ``timeout_s`` passes or the server closes (the
+        condition then)."""
         end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
+        while time.monotonic() < end and not self.closed:
             if condition(self):
                 return True
             self.poll(0.2)

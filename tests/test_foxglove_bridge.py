@@ -9,11 +9,11 @@ the recorded position at its stamp, the results with the values written.
 """
 from __future__ import annotations
 
+import io
 import json
 import re
-import subprocess
-import sys
-import time
+import socket
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,8 @@ pytest.importorskip("websockets")
 from bagfactory import (GUIDEWAY_ACCEL, GUIDEWAY_DISP, VEHICLE_ACCEL, VEHICLE_GAP,  # noqa: E402
                         VEHICLE_POSITION, example_topics, make_metadata)
 from foxglove_client import FoxgloveClient  # noqa: E402
-from rosgraph import ros_env, stop_processes  # noqa: E402
+from maglev_ros.launch_graph import NodeSpec  # noqa: E402
+from rosgraph import ros_env  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 LAYOUT = ROOT / "maglev_ros" / "config" / "foxglove_layout.json"
@@ -98,52 +99,51 @@ def _write_results(path: Path, topics: dict) -> None:
             ts)
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
-    """Bridge + replay of the recording; the client's view after the replay (module-scoped)."""
+    """The recording replayed by the launcher with the live view beside it (``launch --view``'s
+    node spec), a WebSocket client reading meanwhile; its view after the graph stopped."""
+    from maglev_ros import launch_graph
+    from maglev_ros.launcher import launch
     tmp = tmp_path_factory.mktemp("foxglove")
     topics = example_topics(DURATION_S, seed=3)
     t = np.arange(int(DURATION_S * 1000)) / 1000
     topics[GUIDEWAY_DISP] = (("G2D",), ("m",), 1000.0, (1e-4 * np.sin(2 * np.pi * 4 * t))[:, None])
     bag = tmp / "rec"
     _write_results(bag, topics)
-    env = ros_env(60)
-    bridge = subprocess.Popen([sys.executable, "-u", "-m", "maglev_ros.nodes.foxglove_bridge", "--ros-args",
-                               "-p", "port:=0", "-p", "map_period_s:=0.3"], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    client = rep = None
-    try:
-        url = None
-        log = []
-        deadline = time.monotonic() + 60
-        while url is None and time.monotonic() < deadline:
-            line = bridge.stdout.readline()
-            if not line:
-                break
-            log.append(line)
-            m = re.search(r"live view on (ws://\S+):", line)
-            url = m.group(1) if m else None
-        assert url, "".join(log)
-        client = FoxgloveClient(url)
-        client.poll(0.5)
-        rep = subprocess.Popen([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--rate", "1",
-                                "--quiet", "--wait-subscribers", "1"], env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)
-        client.wait_for(lambda c: rep.poll() is not None, 120)      # reading while the replay runs
-        assert rep.returncode == 0, rep.stdout.read()
+    port = _free_port()
+    log = io.StringIO()
+    result = {}
 
-        def complete(c):
-            got = c.messages
-            return (len(got.get("/maglev/view/vehicle_accel/residual", [])) >= 90
-                    and "/maglev/view/diagnosis" in got and "/maglev/view/vehicle_accel/residual_map" in got
-                    and "/maglev/view/parameters" in got and len(got.get("/maglev/view/modes", [])) >= 2)
-        client.wait_for(complete, 30)
-        client.poll(1.5)                     # the last bins (flushed when the streams go quiet)
-        yield {"client": client, "topics": topics, "url": url}
-    finally:
-        if client is not None:
-            client.close()
-        stop_processes(*(p for p in (rep, bridge) if p is not None))
+    def run():
+        try:
+            result["code"] = launch("_view", bag=str(bag), env=ros_env(60), linger_s=4.0, out=log,
+                                    overrides={"replay": {"rate": 1.0, "progress": False},
+                                               "foxglove_bridge": {"map_period_s": 0.3}},
+                                    extra=[launch_graph.view_node("127.0.0.1", port)])
+        except BaseException as exc:  # reported by the test below
+            result["error"] = exc
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(launch_graph.GRAPHS, "_view", [NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True)])
+        graph = threading.Thread(target=run)
+        graph.start()
+        try:
+            client = FoxgloveClient(launch_graph.view_urls("127.0.0.1", port)[1], timeout_s=60)
+        except OSError:
+            graph.join(30)
+            raise AssertionError(f"the live view did not start: {result} {log.getvalue()}") from None
+        # reads while the replay runs and lingers, until the launcher stops the bridge
+        client.wait_for(lambda c: not graph.is_alive(), 120)
+        graph.join(60)
+    client.close()
+    assert result.get("code") == 0, (result, log.getvalue())
+    yield {"client": client, "topics": topics, "log": log.getvalue()}
 
 
 def _bag_bins(channels, rate_hz, data, width_ns):
@@ -241,6 +241,7 @@ def test_residual_map_and_its_grid_cover_the_pass(live):
 
 
 def test_server_time_follows_the_stream_and_layout_channels_are_advertised(live):
+    assert "incompatible QoS" not in live["log"] and "Traceback" not in live["log"], live["log"]
     c = live["client"]
     assert T0_NS <= c.server_time_ns <= T0_NS + int((DURATION_S + 0.2) * 1e9)
     from test_live_view import layout_paths

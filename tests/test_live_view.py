@@ -287,3 +287,27 @@ def test_parameter_names_are_those_the_updater_publishes():
     assert set(lm.PARAMETER_NAMES) == set(TWIN_NAMES.values())
     props = lm.parameters_schema()["properties"]["values"]["properties"]
     assert props["levitation"]["properties"]["kp_a_per_m"] == {"type": "number"}
+
+
+def test_view_groups_are_the_twins():
+    from maglev_ros.twin import online
+    assert lv.GROUP_TOPICS == online.GROUP_TOPICS
+    assert (lv.PREDICTED_PREFIX, lv.RESIDUAL_PREFIX) == (online.PREDICTED_PREFIX, online.RESIDUAL_PREFIX)
+
+
+def test_view_urls_open_the_live_view_in_the_foxglove_app():
+    from maglev_ros.launch_graph import view_node, view_urls
+    app, ws = view_urls("127.0.0.1", 8765)
+    assert (app, ws) == ("https://app.foxglove.dev/?ds=foxglove-websocket&ds.url=ws://localhost:8765",
+                         "ws://localhost:8765")
+    assert view_urls("10.0.0.5", 9000)[1] == "ws://10.0.0.5:9000"
+    spec = view_node("0.0.0.0", 9000)
+    assert spec.observer and spec.params == {"host": "0.0.0.0", "port": 9000}
+
+
+def test_launch_view_port_out_of_range_is_one_line(tmp_path, capsys):
+    pytest.importorskip("rclpy")
+    from maglev_ros.cli import main
+    code = main(["launch", "monitor", "--view", "--view-port", "70000", "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "--view-port" in err[0] and "70000" in err[0]

@@ -23,6 +23,12 @@ def add_arguments(p) -> None:
     p.add_argument("--history", metavar="FILE",
                    help="the updater's parameter history (default DIR/twin_parameters.jsonl); only "
                         "records of the recording's own line are loaded from it")
+    p.add_argument("--view", action="store_true",
+                   help="also serve the live view to Foxglove (WebSocket; docs/live_view.md) and print its URL")
+    p.add_argument("--view-port", type=int, default=8765, metavar="N",
+                   help="port of the live view (default 8765)")
+    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
+                   help="address the live view listens on (default 127.0.0.1; 0.0.0.0 serves other machines)")
     p.add_argument("--linger", type=float, default=30.0, metavar="S",
                    help="after a finite replay ends, keep the graph running this long so the twin, "
                         "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
@@ -51,5 +57,14 @@ def run(args) -> int:
         raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
           f"{history.resolve()}", flush=True)
+    extra = []
+    if args.view:
+        from maglev_ros.launch_graph import view_node, view_urls
+        if not 1 <= args.view_port <= 65535:
+            raise UserError(f"--view-port: expected a port 1-65535, got {args.view_port}")
+        extra.append(view_node(args.view_host, args.view_port))
+        app, ws = view_urls(args.view_host, args.view_port)
+        layout = Path(__file__).resolve().parents[1] / "config" / "foxglove_layout.json"
+        print(f"live view: open {app}\n           or connect Foxglove to {ws}; layout: {layout}", flush=True)
     return launch(args.graph, bag=args.bag, params_file=args.params_file, linger_s=args.linger,
-                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}})
+                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}}, extra=extra)

@@ -13,8 +13,17 @@ same channel names on its own port, so one layout fits every line.
 """
 from __future__ import annotations
 
-from maglev_ros.contract import POSITION_CHANNEL_UNITS, TOPIC_VEHICLE_POSITION
-from maglev_ros.twin.online import GROUP_TOPICS, PREDICTED_PREFIX, RESIDUAL_PREFIX
+from maglev_ros.contract import (POSITION_CHANNEL_UNITS, TOPIC_BODY_ACCEL, TOPIC_GUIDEWAY_ACCEL,
+                                 TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
+                                 TOPIC_VEHICLE_POSITION)
+
+# the twin's output groups and topics (maglev_ros.twin.online's; not imported from there, since it
+# loads numba, seconds of start-up for a viewer; a test keeps the two equal)
+GROUP_TOPICS = {"guideway_accel": TOPIC_GUIDEWAY_ACCEL, "guideway_displacement": TOPIC_GUIDEWAY_DISP,
+                "vehicle_accel": TOPIC_VEHICLE_ACCEL, "vehicle_gap": TOPIC_VEHICLE_GAP,
+                "body_accel": TOPIC_BODY_ACCEL}
+PREDICTED_PREFIX = "/maglev/twin/predicted/"
+RESIDUAL_PREFIX = "/maglev/twin/residual/"
 
 VIEW_PREFIX = "/maglev/view/"
 KINDS = ("measured", "predicted", "residual")

@@ -31,6 +31,7 @@ import json
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 from rclpy.node import Node
@@ -165,8 +166,9 @@ class FoxgloveBridge(Node):
                         TOPIC_IRREGULARITY: (IrregularityProfile, self._on_profile)}
         self._subscribe_latched()
         self.create_timer(0.2, self._tick)
+        layout = Path(__file__).resolve().parents[1] / "config" / "foxglove_layout.json"
         self.get_logger().info(f"live view on {self.url}: open https://app.foxglove.dev/?ds=foxglove-websocket"
-                               f"&ds.url={self.url} (layout: maglev_ros/config/foxglove_layout.json)")
+                               f"&ds.url={self.url} (layout: {layout})")
 
     # ------------------------------------------------------------------ output helpers
     def _json_channel(self, topic: str, schema: dict):

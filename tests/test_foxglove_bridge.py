@@ -258,3 +258,17 @@ def test_server_time_follows_the_stream_and_layout_channels_are_advertised(live)
         for name, index in re.findall(r"(?:^|\.)(\w+)|\[(\d+|:)\]", rest):
             node = node["properties"][name] if name else node["items"]
         assert node.get("type") in ("number", "integer", "array", "object"), (path, node)
+
+
+def test_a_port_in_use_is_one_line_naming_it():
+    import subprocess
+    import sys
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = subprocess.run([sys.executable, "-m", "maglev_ros.nodes.foxglove_bridge", "--ros-args",
+                              "-p", f"port:={port}"], env=ros_env(61), capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 1 and len(lines) == 1, res.stderr
+    assert f"127.0.0.1:{port}" in lines[0] and "port" in lines[0] and "Traceback" not in res.stderr

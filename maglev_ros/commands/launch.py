@@ -62,6 +62,10 @@ def run(args) -> int:
         from maglev_ros.launch_graph import view_node, view_urls
         if not 1 <= args.view_port <= 65535:
             raise UserError(f"--view-port: expected a port 1-65535, got {args.view_port}")
+        import importlib.util
+        if importlib.util.find_spec("foxglove") is None:
+            raise UserError("--view: the live view needs foxglove-sdk, which is not installed: "
+                            "pip install foxglove-sdk==0.30.3 (scripts/install does)")
         extra.append(view_node(args.view_host, args.view_port))
         app, ws = view_urls(args.view_host, args.view_port)
         layout = Path(__file__).resolve().parents[1] / "config" / "foxglove_layout.json"

@@ -412,7 +412,9 @@ class FoxgloveBridge(Node):
                             for n, o in fields], data=data), t_ns, latched=True)
 
     def destroy_node(self):
-        self.server.stop()
+        server = getattr(self, "server", None)      # None: the node failed before serving
+        if server is not None:
+            server.stop()
         return super().destroy_node()
 
 

@@ -311,3 +311,13 @@ def test_launch_view_port_out_of_range_is_one_line(tmp_path, capsys):
     code = main(["launch", "monitor", "--view", "--view-port", "70000", "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1 and "--view-port" in err[0] and "70000" in err[0]
+
+
+def test_position_history_starts_again_when_the_stream_does():
+    m = ResidualMap()
+    m.set_metadata(_map_metadata())
+    m.add_position(np.array([10.0, 11.0, 12.0]), np.array([1.0, 2.0, 3.0]))
+    m.add_position(np.array([11.5]), np.array([9.0]))          # out of order by less than 1 s: dropped
+    assert m.vehicle_x(11.5) == pytest.approx(2.5)
+    m.add_position(np.array([0.0, 1.0]), np.array([5.0, 6.0]))  # a loop: the history starts again
+    assert m.vehicle_x(0.5) == pytest.approx(5.5) and m.vehicle_x(11.5) is None

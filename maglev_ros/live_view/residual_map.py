@@ -85,10 +85,13 @@ class ResidualMap:
         self.t_last_s: dict[str, float] = {}
 
     def add_position(self, t_s, x_m) -> None:
-        """Vehicle reference positions (times in stream seconds, increasing)."""
+        """Vehicle reference positions (times in stream seconds, increasing; a jump back by more
+        than a second starts the history again: a looped replay)."""
         t = np.asarray(t_s, float)
         x = np.asarray(x_m, float)
         ok = np.isfinite(t) & np.isfinite(x)
+        if self.pos_t.size and t.size and t[0] < self.pos_t[-1] - 1.0:
+            self.pos_t, self.pos_x = np.zeros(0), np.zeros(0)     # time went back: the stream restarted
         if self.pos_t.size:
             ok &= t > self.pos_t[-1]
         self.pos_t = np.r_[self.pos_t, t[ok]]

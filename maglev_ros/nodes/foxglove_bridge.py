@@ -251,7 +251,10 @@ class FoxgloveBridge(Node):
             if b is None:
                 return
             self.last_block_wall[topic] = time.monotonic()
-            self.stream_ns = max(self.stream_ns or 0, int(b.end_ns))
+            if kind == "measured":                 # the twin's streams lag: the measurement sets the time
+                end = int(b.end_ns)
+                if self.stream_ns is None or end > self.stream_ns or end < self.stream_ns - 5_000_000_000:
+                    self.stream_ns = end               # (a jump back: the stream started again)
             if topic == TOPIC_VEHICLE_POSITION and "position_m" in b.channels:
                 x = b.channel("position_m")
                 self.map.add_position(b.times_s(), x)

@@ -116,7 +116,22 @@ class FoxgloveBridge(Node):
         self.lock = threading.Lock()            # state shared with the server's subscribe callback
         self.latest: dict[str, tuple] = {}      # view -> (channel, payload, log time): sent again to late clients
         self.channels: dict[str, object] = {}
-        self.series_layout: dict[str, tuple] = {}
+        self.series_layout: dict[str, frozenset] = {}
+        self.scene_entities: dict[str, dict] = {}
+        self.decimators = {t: Decimator(rate) for t in lv.source_topics()}
+        self.last_block_wall: dict[str, float] = {}
+        self.last_source: dict[str, str] = {}      # topic -> frame_id of its last block
+        self.map = ResidualMap(position_bin_m=bin_m)
+        self.map_frames_sent: dict[str, int] = {}
+        self.t_map = time.monotonic()
+        self.metadata: dict | None = None
+        self.modes = lm.ModeHistory()
+        self.mismatches = lm.MismatchLog()
+        self.n_mismatch = 0
+        self.tf_period_ns = max(1, int(round(1e9 / scene_rate)))
+        self.tf_slot: int | None = None
+        self.stream_ns: int | None = None
+        self.time_sent: int | None = None
         self.ctx = fg.Context()
         try:
             self.server = fg.start_server(name=f"maglev_ros {self.get_namespace()}", host=host, port=port,
@@ -137,20 +152,6 @@ class FoxgloveBridge(Node):
                               (lv.VIEW_IRREGULARITY, lm.irregularity_schema()),
                               (lv.VIEW_DIAGNOSIS, lm.diagnosis_schema()), (lv.VIEW_METADATA, lm.metadata_schema())):
             self._json_channel(topic, schema)
-        self.scene_entities: dict[str, dict] = {}
-        self.decimators = {t: Decimator(rate) for t in lv.source_topics()}
-        self.last_block_wall: dict[str, float] = {}
-        self.map = ResidualMap(position_bin_m=bin_m)
-        self.map_frames_sent: dict[str, int] = {}
-        self.t_map = time.monotonic()
-        self.metadata: dict | None = None
-        self.modes = lm.ModeHistory()
-        self.mismatches = lm.MismatchLog()
-        self.n_mismatch = 0
-        self.tf_period_ns = max(1, int(round(1e9 / scene_rate)))
-        self.tf_slot: int | None = None
-        self.stream_ns: int | None = None
-        self.time_sent: int | None = None
 
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
@@ -251,6 +252,7 @@ class FoxgloveBridge(Node):
             if b is None:
                 return
             self.last_block_wall[topic] = time.monotonic()
+            self.last_source[topic] = b.frame_id
             if kind == "measured":                 # the twin's streams lag: the measurement sets the time
                 end = int(b.end_ns)
                 if self.stream_ns is None or end > self.stream_ns or end < self.stream_ns - 5_000_000_000:
@@ -370,7 +372,8 @@ class FoxgloveBridge(Node):
             if now - t_wall > IDLE_FLUSH_S:         # the stream paused or ended: its last bin
                 del self.last_block_wall[topic]
                 group, kind = lv.source_topics()[topic]
-                self._send_bins(lv.series_topic(group, kind), self.decimators[topic].flush(), "")
+                self._send_bins(lv.series_topic(group, kind), self.decimators[topic].flush(),
+                                self.last_source.get(topic, ""))
         if now - self.t_map >= self.map_period_s:
             self.t_map = now
             self._send_maps()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 import socket
 import threading
@@ -99,6 +100,11 @@ def _write_results(path: Path, topics: dict) -> None:
             ts)
 
 
+def _env() -> dict:
+    """ros_env with a domain id of a range few tests use (215-231; the ids end at 232)."""
+    return dict(ros_env(0), ROS_DOMAIN_ID=str(215 + os.getpid() % 17))
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -123,7 +129,7 @@ def live(tmp_path_factory):
 
     def run():
         try:
-            result["code"] = launch("_view", bag=str(bag), env=ros_env(60), linger_s=4.0, out=log,
+            result["code"] = launch("_view", bag=str(bag), env=_env(), linger_s=4.0, out=log,
                                     overrides={"replay": {"rate": 1.0, "progress": False},
                                                "foxglove_bridge": {"map_period_s": 0.3}},
                                     extra=[launch_graph.view_node("127.0.0.1", port)])
@@ -243,6 +249,7 @@ def test_residual_map_and_its_grid_cover_the_pass(live):
 def test_server_time_follows_the_stream_and_layout_channels_are_advertised(live):
     assert "incompatible QoS" not in live["log"] and "Traceback" not in live["log"], live["log"]
     c = live["client"]
+    assert not c.unadvertised and not c.other, (c.unadvertised, c.other)     # no channel taken back, no error
     assert T0_NS <= c.server_time_ns <= T0_NS + int((DURATION_S + 0.2) * 1e9)
     from test_live_view import layout_paths
     paths = layout_paths(json.loads(LAYOUT.read_text()))
@@ -256,7 +263,10 @@ def test_server_time_follows_the_stream_and_layout_channels_are_advertised(live)
             continue
         node = json.loads(ch["schema"])
         for name, index in re.findall(r"(?:^|\.)(\w+)|\[(\d+|:)\]", rest):
-            node = node["properties"][name] if name else node["items"]
+            if not name:
+                node = node["items"]
+            else:   # a named field, or one of an object's named-by-data fields (a stream's channels)
+                node = node.get("properties", {}).get(name) or node["additionalProperties"]
         assert node.get("type") in ("number", "integer", "array", "object"), (path, node)
 
 
@@ -268,7 +278,7 @@ def test_a_port_in_use_is_one_line_naming_it():
         busy.listen()
         port = busy.getsockname()[1]
         res = subprocess.run([sys.executable, "-m", "maglev_ros.nodes.foxglove_bridge", "--ros-args",
-                              "-p", f"port:={port}"], env=ros_env(61), capture_output=True, text=True, timeout=120)
+                              "-p", f"port:={port}"], env=_env(), capture_output=True, text=True, timeout=120)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 1 and len(lines) == 1, res.stderr
     assert f"127.0.0.1:{port}" in lines[0] and "port" in lines[0] and "Traceback" not in res.stderr

@@ -13,7 +13,7 @@ same channel names on its own port, so one layout fits every line.
 """
 from __future__ import annotations
 
-from maglev_ros.contract import (POSITION_CHANNEL_UNITS, TOPIC_BODY_ACCEL, TOPIC_GUIDEWAY_ACCEL,
+from maglev_ros.contract import (TOPIC_BODY_ACCEL, TOPIC_GUIDEWAY_ACCEL,
                                  TOPIC_GUIDEWAY_DISP, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                  TOPIC_VEHICLE_POSITION)
 
@@ -78,13 +78,3 @@ def view_topics() -> set[str]:
     out |= {VIEW_SCENE, VIEW_TF, *LATCHED_VIEWS}
     return out
 
-
-def stream_channels(metadata: dict, topic: str) -> tuple[str, ...]:
-    """The channels a stream topic will carry by the metadata (its sensors; the twin's groups those
-    of their measured topic; the position its two contract channels), () when it lists none."""
-    group, kind = source_topics()[topic]
-    measured = topic if kind == "measured" else GROUP_TOPICS[group]
-    if measured == TOPIC_VEHICLE_POSITION:
-        return tuple(POSITION_CHANNEL_UNITS) if kind == "measured" else ()
-    sensors = (metadata or {}).get("sensors") or {}
-    return tuple(k for k, s in sensors.items() if isinstance(s, dict) and s.get("topic") == measured)

@@ -129,10 +129,11 @@ def series_messages(bins: Bins, source: str = "") -> list[tuple[int, dict]]:
     return out
 
 
-def series_schema(channels, title: str = "maglev.view.Series") -> dict:
-    """JSON schema of :func:`series_messages` for these channels (named, so the app's message-path
-    editor offers them; a value may be null: no finite sample)."""
-    per_channel = {"type": "object", "properties": {c: {"type": "number"} for c in channels}}
+def series_schema(channels=(), title: str = "maglev.view.Series") -> dict:
+    """JSON schema of :func:`series_messages`: ``channels`` named, any other channel name a number
+    too (the bridge advertises its channels before a recording names its sensors)."""
+    per_channel = {"type": "object", "properties": {c: {"type": "number"} for c in channels},
+                   "additionalProperties": {"type": "number"}}
     return {"title": title, "type": "object",
             "properties": {"t_s": {"type": "number", "description": "bin start, stream time [s]"},
                            "bin_s": {"type": "number"}, "n": {"type": "integer"},

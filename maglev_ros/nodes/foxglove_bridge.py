@@ -116,7 +116,7 @@ class FoxgloveBridge(Node):
         self.lock = threading.Lock()            # state shared with the server's subscribe callback
         self.latest: dict[str, tuple] = {}      # view -> (channel, payload, log time): sent again to late clients
         self.channels: dict[str, object] = {}
-        self.series_layout: dict[str, frozenset] = {}
+        self.grid_ch: dict[str, object] = {}
         self.scene_entities: dict[str, dict] = {}
         self.decimators = {t: Decimator(rate) for t in lv.source_topics()}
         self.last_block_wall: dict[str, float] = {}
@@ -133,18 +133,9 @@ class FoxgloveBridge(Node):
         self.stream_ns: int | None = None
         self.time_sent: int | None = None
         self.ctx = fg.Context()
-        try:
-            self.server = fg.start_server(name=f"maglev_ros {self.get_namespace()}", host=host, port=port,
-                                          context=self.ctx, capabilities=[fg.websocket.Capability.Time],
-                                          server_listener=_listener(fg, self))
-        except Exception as exc:  # the SDK raises a plain RuntimeError for a port in use
-            raise UserError(f"parameter port: cannot serve the live view on {host}:{port} ({exc})") from None
-        self.url = f"ws://{host}:{self.server.port}"
-        self.scene_ch = fg.channels.SceneUpdateChannel(lv.VIEW_SCENE, context=self.ctx)
-        self.tf_ch = fg.channels.FrameTransformChannel(lv.VIEW_TF, context=self.ctx)
-        self.grid_ch: dict[str, object] = {}
-        # every channel is advertised before its first message (here, or with the metadata): a
-        # client then subscribes in time, and never to a channel the server is still adding
+        # every channel exists before the server takes a client, and none is ever replaced: a
+        # client then gets them all in its first advertisement (foxglove-sdk 0.30 can refuse a
+        # subscription to a channel advertised while the client is connected: "unknown channel")
         for topic, schema in ((lv.VIEW_MODES, lm.modes_schema()), (lv.VIEW_MISMATCH, lm.mismatch_schema()),
                               (lv.VIEW_MODE_HISTORY, lm.mode_history_schema()),
                               (lv.VIEW_MISMATCH_LOG, lm.mismatch_log_schema()),
@@ -152,6 +143,20 @@ class FoxgloveBridge(Node):
                               (lv.VIEW_IRREGULARITY, lm.irregularity_schema()),
                               (lv.VIEW_DIAGNOSIS, lm.diagnosis_schema()), (lv.VIEW_METADATA, lm.metadata_schema())):
             self._json_channel(topic, schema)
+        for group, kind in lv.source_topics().values():
+            self._json_channel(lv.series_topic(group, kind), series_schema())
+        for group in lv.TWIN_GROUPS:
+            self._json_channel(lv.map_topic(group), map_schema())
+            self._grid_channel(group)
+        self.scene_ch = fg.channels.SceneUpdateChannel(lv.VIEW_SCENE, context=self.ctx)
+        self.tf_ch = fg.channels.FrameTransformChannel(lv.VIEW_TF, context=self.ctx)
+        try:
+            self.server = fg.start_server(name=f"maglev_ros {self.get_namespace()}", host=host, port=port,
+                                          context=self.ctx, capabilities=[fg.websocket.Capability.Time],
+                                          server_listener=_listener(fg, self))
+        except Exception as exc:  # the SDK raises a plain RuntimeError for a port in use
+            raise UserError(f"parameter port: cannot serve the live view on {host}:{port} ({exc})") from None
+        self.url = f"ws://{host}:{self.server.port}"
 
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
@@ -182,9 +187,8 @@ class FoxgloveBridge(Node):
                                  data=json.dumps(schema).encode()))
         return ch
 
-    def _log(self, topic: str, message: dict, t_ns: int, title: str, latched: bool = False,
-             schema: dict | None = None) -> None:
-        ch = self._json_channel(topic, schema or lm.infer_schema(message, title))    # known: advertised
+    def _log(self, topic: str, message: dict, t_ns: int, latched: bool = False) -> None:
+        ch = self.channels[topic]
         data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
         self._emit(topic, ch, data, t_ns, latched)
 
@@ -263,20 +267,8 @@ class FoxgloveBridge(Node):
                 self._move_vehicle(b, x)
             if kind == "residual":
                 self.map.add_block(group, b)
-            self._series_channel(view, b.channels)
             self._send_bins(view, self.decimators[topic].add(b), b.frame_id)
         return cb
-
-    def _series_channel(self, view: str, channels) -> None:
-        """The view's channel, advertised with its channels' names (again when they change)."""
-        layout = frozenset(channels)
-        if self.series_layout.get(view) == layout:
-            return
-        old = self.channels.pop(view, None)
-        if old is not None:                        # a new recording with other channels
-            old.close()
-        self.series_layout[view] = layout
-        self._json_channel(view, series_schema(tuple(channels)))
 
     def _send_bins(self, view: str, bins, source: str) -> None:
         ch = self.channels.get(view)
@@ -312,33 +304,25 @@ class FoxgloveBridge(Node):
         self.map_frames_sent.clear()
         self.tf_slot = None
         t = self._now_ns()
-        self._log(lv.VIEW_METADATA, lm.jsonable(self.metadata), t, "maglev.view.Metadata", latched=True)
+        self._log(lv.VIEW_METADATA, lm.jsonable(self.metadata), t, latched=True)
         try:
             entities = ls.line_entities(self.metadata) + ls.vehicle_entities(self.metadata)
         except (ContractError, UserError, KeyError, TypeError, ValueError) as exc:
             self.get_logger().warning(f"scene: the line cannot be drawn from the metadata ({exc})")
             entities = []
         self._send_scene(entities, t, clear=True)
-        # the streams' channels are advertised now, so a client subscribes before the first block
-        for topic, (group, kind) in lv.source_topics().items():
-            names = lv.stream_channels(self.metadata, topic)
-            if names:
-                self._series_channel(lv.series_topic(group, kind), names)
-                if kind == "residual":
-                    self._json_channel(lv.map_topic(group), map_schema())
-                    self._grid_channel(group)
 
     def _on_modes(self, msg) -> None:
         m = lm.modes_message(plain(msg))
         t = _stamp_ns(msg.header)
-        self._log(lv.VIEW_MODES, m, t, "maglev.view.Modes", latched=True)
-        self._log(lv.VIEW_MODE_HISTORY, self.modes.add(m), t, "maglev.view.ModeHistory", latched=True)
+        self._log(lv.VIEW_MODES, m, t, latched=True)
+        self._log(lv.VIEW_MODE_HISTORY, self.modes.add(m), t, latched=True)
 
     def _on_mismatch(self, msg) -> None:
         m = lm.mismatch_message(plain(msg))
         t = _stamp_ns(msg.header)
-        self._log(lv.VIEW_MISMATCH, m, t, "maglev.view.Mismatch", latched=True)
-        self._log(lv.VIEW_MISMATCH_LOG, self.mismatches.add(m), t, "maglev.view.MismatchLog", latched=True)
+        self._log(lv.VIEW_MISMATCH, m, t, latched=True)
+        self._log(lv.VIEW_MISMATCH_LOG, self.mismatches.add(m), t, latched=True)
         width = 2.0
         if self.metadata is not None:
             try:
@@ -351,17 +335,14 @@ class FoxgloveBridge(Node):
             self._send_scene([e], t)
 
     def _on_diagnosis(self, msg) -> None:
-        self._log(lv.VIEW_DIAGNOSIS, lm.diagnosis_message(msg.data), self._now_ns(),
-                  "maglev.view.Diagnosis", latched=True)
+        self._log(lv.VIEW_DIAGNOSIS, lm.diagnosis_message(msg.data), self._now_ns(), latched=True)
 
     def _on_parameters(self, msg) -> None:
         t = self._now_ns(_stamp_ns(msg.header))
-        self._log(lv.VIEW_PARAMETERS, lm.parameters_message(plain(msg), t * 1e-9), t,
-                  "maglev.view.Parameters", latched=True)
+        self._log(lv.VIEW_PARAMETERS, lm.parameters_message(plain(msg), t * 1e-9), t, latched=True)
 
     def _on_profile(self, msg) -> None:
-        self._log(lv.VIEW_IRREGULARITY, lm.irregularity_message(plain(msg)), _stamp_ns(msg.header),
-                  "maglev.view.Irregularity", latched=True)
+        self._log(lv.VIEW_IRREGULARITY, lm.irregularity_message(plain(msg)), _stamp_ns(msg.header), latched=True)
 
     # ------------------------------------------------------------------------- timer
     def _tick(self) -> None:
@@ -387,8 +368,7 @@ class FoxgloveBridge(Node):
                 continue
             self.map_frames_sent[group] = frames
             t = int(self.map.t_last_s.get(group, 0.0) * 1e9)
-            self._log(lv.map_topic(group), self.map.message(group), t, "maglev.view.ResidualMap",
-                      latched=True, schema=map_schema())
+            self._log(lv.map_topic(group), self.map.message(group), t, latched=True)
             self._send_grid(group, t)
 
     def _grid_channel(self, group: str):

@@ -22,6 +22,8 @@ class NodeSpec:
     # a processing node ends only when stopped: its end while the graph runs (even with exit
     # code 0, e.g. an outside SIGTERM) is a failure of the graph
     runs_until_stopped: bool = False
+    # watches the graph (the live view): the replay does not wait for it, nor for its results
+    observer: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {
@@ -49,6 +51,22 @@ def recorder_spec(path, include_inputs: bool = False, reliable: bool = False,
                     params={"path": os.path.abspath(path), "include_inputs": bool(include_inputs),
                             "reliable": bool(reliable), "use_sim_time": bool(sim_time)},
                     runs_until_stopped=True)
+
+
+VIEW_PORT = 8765          # Foxglove's usual WebSocket port
+
+
+def view_node(host: str = "127.0.0.1", port: int = VIEW_PORT) -> NodeSpec:
+    """The live view (Foxglove bridge) beside a graph: ``maglev-ros launch GRAPH --view``."""
+    return NodeSpec("foxglove_bridge", "maglev_ros.nodes.foxglove_bridge", params={"host": host, "port": int(port)},
+                    runs_until_stopped=True, observer=True)
+
+
+def view_urls(host: str, port: int) -> tuple[str, str]:
+    """(the Foxglove app's URL that opens the live view, the plain WebSocket URL)."""
+    shown = "localhost" if host in ("127.0.0.1", "0.0.0.0", "") else host
+    ws = f"ws://{shown}:{int(port)}"
+    return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={ws}", ws
 
 
 def graph(name: str) -> list[NodeSpec]:
@@ -138,14 +156,15 @@ def node_launches(graph_name: str, bag: str | None = None, overrides: dict | Non
     overrides = overrides or {}
     ns = check_namespace(namespace)
     specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
-    others = [s.name for s in specs if not s.needs_bag]
+    others = [s.name for s in specs if not s.needs_bag and not s.observer]
     remaps = (("/clock", f"{ns}/clock"),) if ns else ()
     out = []
     for spec in specs:
         params = dict(spec.params)
         if spec.needs_bag:
             params["bag"] = os.path.abspath(bag)
-            params.update({"wait_nodes": others, "wait_subscribers": 1, "wait_timeout_s": WAIT_TIMEOUT_S,
+            # [""]: no node to wait for (observers only); an empty list has no ROS parameter type
+            params.update({"wait_nodes": others or [""], "wait_subscribers": 1, "wait_timeout_s": WAIT_TIMEOUT_S,
                            "linger_s": float(linger_s)})
         elif use_sim_time:
             params["use_sim_time"] = True

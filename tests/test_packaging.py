@@ -39,7 +39,9 @@ ROSDEP_KEY = {
     "rcl_interfaces": "rcl_interfaces",
 }
 # imported only when installed (guarded import) and without a rosdep key: pip brings it
-OPTIONAL_WITHOUT_KEY = {"threadpoolctl"}
+# (foxglove: foxglove-sdk, the live view's server, from requirements.txt; the node says so in one
+# line when it is missing)
+OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove"}
 # what pip installs for the science core; the ROS side comes from requirements.txt
 PIP_NAME = {"yaml": "pyyaml"}
 

@@ -42,6 +42,12 @@ def add_arguments(p) -> None:
     p.add_argument("--record-reliable", action="store_true",
                    help="with --record: subscribe the streams reliably (nothing lost; the replay "
                         "then also waits for the recorder)")
+    p.add_argument("--view", action="store_true",
+                   help="also serve the live view to Foxglove (WebSocket; docs/live_view.md) and print its URL")
+    p.add_argument("--view-port", type=int, default=8765, metavar="N",
+                   help="port of the live view (default 8765)")
+    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
+                   help="address the live view listens on (default 127.0.0.1; 0.0.0.0 serves other machines)")
     p.add_argument("--linger", type=float, default=float(default["linger_s"]), metavar="S",
                    help="after a finite replay ends, keep the graph running this long so the twin, "
                         "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
@@ -81,6 +87,15 @@ def run(args) -> int:
                                    sim_time=bool(args.bag)))
     elif args.record_inputs or args.record_reliable:
         raise UserError("--record-inputs / --record-reliable: given without --record FILE.mcap")
+    if args.view:
+        from maglev_ros.launch_graph import view_node, view_urls
+        if not 1 <= args.view_port <= 65535:
+            raise UserError(f"--view-port: expected a port 1-65535, got {args.view_port}")
+        import importlib.util
+        if importlib.util.find_spec("foxglove") is None:
+            raise UserError("--view: the live view needs foxglove-sdk, which is not installed: "
+                            "pip install foxglove-sdk==0.30.3 (scripts/install does)")
+        extra.append(view_node(args.view_host, args.view_port))
     history = Path(kwargs["overrides"]["updater"]["history_path"])
     try:
         history.parent.mkdir(parents=True, exist_ok=True)
@@ -89,4 +104,8 @@ def run(args) -> int:
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
           f"{history.resolve()}" + (f"; namespace {kwargs['namespace']}" if kwargs["namespace"] else "")
           + (f"; recording to {Path(args.record).resolve()}" if args.record else ""), flush=True)
+    if args.view:
+        app, ws = view_urls(args.view_host, args.view_port)
+        layout = Path(__file__).resolve().parents[1] / "config" / "foxglove_layout.json"
+        print(f"live view: open {app}\n           or connect Foxglove to {ws}; layout: {layout}", flush=True)
     return launch(args.graph, extra=extra, **kwargs)

@@ -183,7 +183,7 @@ class TwinStepper:
                  irregularity: Any = None, fs_out_hz: float = 1000.0, start_position_m: float = 0.0,
                  start_speed_mps: float = 0.0, t0_s: float = 0.0, method: str = "newmark",
                  dt_max_s: float | None = None, init: str = "static", block_steps: int = 1024,
-                 current_limit_a: float | None = None):
+                 current_limit_a: float | None = None, reference: bool = False):
         if method not in METHODS:
             raise UserError(f"method: expected one of {METHODS}, got {method!r}")
         if not fs_out_hz > 0:
@@ -211,6 +211,8 @@ class TwinStepper:
         self.dt_s = 1.0 / (self.fs_out_hz * self.n_sub)
         self.t0_s = float(t0_s)
         self.block_steps = int(block_steps)
+        # reference: every mode of the line in every step (the span-local stepping's check, bench)
+        self.reference = bool(reference)
         self.tol = num.iteration_tol
         self.max_iter = num.max_iterations
         self._setup_matrices()
@@ -300,6 +302,12 @@ class TwinStepper:
         self._gq = 1.0 / self._khat
         self._c2zw = 2 * z * w
         self._acc_x, self._acc_u = ss.out_dof_acc
+        self._Ey = np.ascontiguousarray(E[:, :m])
+        self._Eyd = np.ascontiguousarray(E[:, m:2 * m])
+        self._EN = np.ascontiguousarray(E[:, 2 * m:])
+        self._free_T = _free_transition(self._gq, self._c2zw, h)
+        self._free_pow: dict[int, np.ndarray] = {}
+        self._obs_for = None
 
     # ----------------------------------------------------------------------------------------
     def _init_static(self) -> None:
@@ -329,19 +337,23 @@ class TwinStepper:
         self._F = F
 
     # ----------------------------------------------------------------------------------------
-    def _prepare(self, pos: np.ndarray, vel: np.ndarray) -> dict:
-        """Position-dependent quantities for a block of steps (vectorised)."""
-        m, nq = self._m, self.modal.n_modes
+    def _prepare(self, pos: np.ndarray, vel: np.ndarray, spans=None, modes=None) -> dict:
+        """Position-dependent quantities for a block of steps (vectorised); with ``spans`` only the
+        columns of ``modes`` (the modes of those spans, ``ModalBasis.mode_columns``)."""
+        m = self._m
         X = pos[:, None] + self.magnet_offsets_m[None, :]
         Xf = X.ravel()
-        phi = self.modal.shapes_at(Xf).reshape(X.shape[0], m, nq)
-        dphi = self.modal.slopes_at(Xf).reshape(X.shape[0], m, nq)
+        phi = self.modal.shapes_at(Xf, spans)
+        nq = phi.shape[1]
+        phi = phi.reshape(X.shape[0], m, nq)
+        dphi = self.modal.slopes_at(Xf, spans).reshape(X.shape[0], m, nq)
         r = self.irregularity.elevation(Xf).reshape(X.shape)
         rd = self.irregularity.slope(Xf).reshape(X.shape) * vel[:, None]
-        g = self._gq
+        g = self._gq if modes is None else self._gq[modes]
+        gain = self._force_gain if modes is None else self._force_gain[modes]
         phig = phi * g[None, None, :]
         # the modal forces phi^T F, times the prewarp's force gain (the rail displacement phi q is not)
-        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)) * self._force_gain[None, :, None])
+        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)) * gain[None, :, None])
         P = phig @ phiT
         Qc = (dphi * g[None, None, :]) @ phiT
         Q = (2 / self.dt_s) * P + vel[:, None, None] * Qc
@@ -395,6 +407,102 @@ class TwinStepper:
 
     # ----------------------------------------------------------------------------------------
     def _run_block(self, pos: np.ndarray, vel: np.ndarray) -> PassResult:
+        """One block of steps. Only the modes of the spans under the magnets during the block enter
+        the coupled kernel; the others vibrate freely: those seen by a sensor are stepped one by one
+        (for their outputs), the rest jump to the block's end by the scheme's transition matrix."""
+        if self.reference:
+            return self._run_block_full(pos, vel)
+        ns = pos.size
+        m, nq = self._m, self.modal.n_modes
+        X = pos[:, None] + self.magnet_offsets_m[None, :]
+        k_span = self.modal.span_of(X.ravel())
+        spans = np.unique(k_span[k_span >= 0])
+        act = self.modal.mode_columns(spans)
+        pre = self._prepare(pos, vel, spans, act)
+        lev = self.vehicle.levitation
+        h = self.dt_s
+        newmark = self.method == "newmark"
+        if newmark:
+            S_all, SEN_all = pre["S"], pre["SEN"]
+        else:
+            S_all = SEN_all = np.zeros((1, m, m))
+        k0 = self._k
+        out_idx = _output_steps(k0, ns, self.n_sub)
+        no = out_idx.size
+        x, u, F = self._x.copy(), self._u.copy(), self._F.copy()
+        q, qd, qdd = self._q[act], self._qd[act], self._qdd[act]
+        rec_x = np.empty((no, self._x.size))
+        rec_u = np.empty((no, self._u.size))
+        rec_q = np.empty((no, act.size))
+        rec_qdd = np.empty((no, act.size))
+        rec_mag = np.empty((no, 4, m))
+        rec_it = np.zeros(no, dtype=np.int64)
+        _KERNEL(newmark, h, float(lev.nominal_gap_m), float(lev.static_current_a), lev.force_coeff,
+                lev.static_force_n, self.tol * float(np.mean(lev.static_force_n)), int(self.max_iter),
+                self._OL, self._GL, self._ABd0, self._Bd1, self._O, self._OD, self._Ey, self._Eyd,
+                self._gq[act], self._c2zw[act], pre["phi"], pre["dphi"], pre["phiT"], pre["r"], pre["rd"],
+                np.ascontiguousarray(vel, dtype=float), S_all, SEN_all,
+                x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
+                *self._saturation(lev))
+        self._x, self._u, self._F = x, u, F
+        # the modes the sensors see: loaded ones from the kernel, free ones stepped here
+        obs, shapes = self._observed()
+        loaded = np.zeros(nq, bool)
+        loaded[act] = True
+        Qo = np.empty((no, obs.size))
+        Qddo = np.empty((no, obs.size))
+        if obs.size:
+            in_act = loaded[obs]
+            where = np.searchsorted(act, obs[in_act])
+            Qo[:, in_act], Qddo[:, in_act] = rec_q[:, where], rec_qdd[:, where]
+            fo = obs[~in_act]
+            if fo.size:
+                fq, fqd, fqdd = self._q[fo], self._qd[fo], self._qdd[fo]
+                rq, rqdd = np.empty((no, fo.size)), np.empty((no, fo.size))
+                _FREE(h, self._gq[fo], self._c2zw[fo], ns, fq, fqd, fqdd, out_idx, rq, rqdd)
+                self._q[fo], self._qd[fo], self._qdd[fo] = fq, fqd, fqdd
+                Qo[:, ~in_act], Qddo[:, ~in_act] = rq, rqdd
+                loaded[fo] = True
+        self._q[act], self._qd[act], self._qdd[act] = q, qd, qdd
+        # every other mode: n steps of free vibration in one product per mode
+        rest = np.flatnonzero(~loaded)
+        if rest.size:
+            Tn = self._free_power(ns)[rest]
+            s0 = np.stack([self._q[rest], self._qd[rest], self._qdd[rest]], axis=1)
+            s1 = np.einsum("kij,kj->ki", Tn, s0)
+            self._q[rest], self._qd[rest], self._qdd[rest] = s1[:, 0], s1[:, 1], s1[:, 2]
+        self._k += ns
+        self.position_m = float(pos[-1])
+        t = self.t0_s + (k0 + out_idx + 1) * h
+        nd = self.vehicle.model.n_dof
+        acc = rec_x @ self._acc_x.T + rec_u @ self._acc_u.T
+        return PassResult(
+            time_s=t, position_m=pos[out_idx], speed_mps=vel[out_idx], dof_names=self.vehicle.model.dof_names,
+            vehicle_disp_m=rec_x[:, :nd], vehicle_acc_mps2=acc,
+            magnet_accel_mps2=rec_mag[:, 0], magnet_gap_m=rec_mag[:, 1], magnet_current_a=rec_mag[:, 2],
+            magnet_force_n=rec_mag[:, 3], sensor_names=self.sensor_names, sensor_x_m=self.sensor_x_m,
+            guideway_disp_m=Qo @ shapes.T, guideway_accel_mps2=Qddo @ shapes.T,
+            iterations=rec_it, method=self.method, dt_s=h)
+
+    def _observed(self) -> tuple[np.ndarray, np.ndarray]:
+        """Modes a sensor sees (non-zero shape at some sensor) and the sensors' shapes on them."""
+        if self._obs_for is not self.sensor_shapes:     # (re)built with the basis (discrepancy models swap it)
+            obs = np.flatnonzero(np.any(self.sensor_shapes != 0.0, axis=0))
+            self._obs = (obs, np.ascontiguousarray(self.sensor_shapes[:, obs]))
+            self._obs_for = self.sensor_shapes
+        return self._obs
+
+    def _free_power(self, n: int) -> np.ndarray:
+        """Transition of n free steps per mode, (n_modes, 3, 3) on (q, q', q'')."""
+        Tn = self._free_pow.get(n)
+        if Tn is None:
+            if len(self._free_pow) > 16:
+                self._free_pow.clear()
+            Tn = self._free_pow[n] = np.linalg.matrix_power(self._free_T, n)
+        return Tn
+
+    def _run_block_full(self, pos: np.ndarray, vel: np.ndarray) -> PassResult:
+        """``_run_block`` with every mode of the line in every step (reference)."""
         ns = pos.size
         pre = self._prepare(pos, vel)
         lev = self.vehicle.levitation
@@ -436,6 +544,50 @@ class TwinStepper:
             magnet_force_n=rec_mag[:, 3], sensor_names=self.sensor_names, sensor_x_m=self.sensor_x_m,
             guideway_disp_m=rec_q @ self.sensor_shapes.T, guideway_accel_mps2=rec_qdd @ self.sensor_shapes.T,
             iterations=rec_it, method=self.method, dt_s=h)
+
+
+def _output_steps(k0: int, ns: int, n_sub: int) -> np.ndarray:
+    """Indices i of the block's steps k0 + i (0 <= i < ns) that end an output interval."""
+    first = (-(k0 + 1)) % n_sub
+    return np.arange(first, ns, n_sub, dtype=np.int64)
+
+
+def _free_transition(gq: np.ndarray, c2zw: np.ndarray, h: float) -> np.ndarray:
+    """One Newmark step of each unloaded mode as a matrix on (q, q', q''): (n_modes, 3, 3)."""
+    a4, a2, b = 4.0 / (h * h), 2.0 / h, 4.0 / h
+    T = np.zeros((gq.size, 3, 3))
+    T[:, 0, 0] = gq * (a4 + c2zw * a2)
+    T[:, 0, 1] = gq * (b + c2zw)
+    T[:, 0, 2] = gq
+    T[:, 1] = a2 * T[:, 0]
+    T[:, 1, 0] -= a2
+    T[:, 1, 1] -= 1.0
+    T[:, 2] = a4 * T[:, 0]
+    T[:, 2, 0] -= a4
+    T[:, 2, 1] -= b
+    T[:, 2, 2] -= 1.0
+    return T
+
+
+def _free_steps(h, gq, c2zw, ns, q, qd, qdd, out_idx, rec_q, rec_qdd):
+    """ns Newmark steps of unloaded modes (in place), the kernel's own arithmetic; records q, q''
+    at ``out_idx``."""
+    a4 = 4.0 / (h * h)
+    a2 = 2.0 / h
+    j = 0
+    n_out = out_idx.size
+    for i in range(ns):
+        for k in range(q.size):
+            qc = q[k]
+            qdc = qd[k]
+            qn = (a4 * qc + (4.0 / h) * qdc + qdd[k] + c2zw[k] * (a2 * qc + qdc)) * gq[k]
+            qdd[k] = a4 * (qn - qc) - (4.0 / h) * qdc - qdd[k]
+            qd[k] = a2 * (qn - qc) - qdc
+            q[k] = qn
+        if j < n_out and out_idx[j] == i:
+            rec_q[j] = q
+            rec_qdd[j] = qdd
+            j += 1
 
 
 def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: float,
@@ -636,9 +788,11 @@ try:  # optional accelerator
     _mv = _numba.njit(cache=True)(_mv_loop)
     _sat_newton_step = _numba.njit(cache=True)(_sat_newton_step)
     _KERNEL = _numba.njit(cache=True)(_kernel)
+    _FREE = _numba.njit(cache=True)(_free_steps)
     HAVE_NUMBA = True
 except Exception:  # pragma: no cover - numba missing or broken: plain Python (same results, slower)
     _KERNEL = _kernel
+    _FREE = _free_steps
     HAVE_NUMBA = False
 
 

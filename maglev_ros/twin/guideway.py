@@ -204,9 +204,9 @@ class ModalBasis:
             object.__setattr__(self, "_tab", tab)
         return tab
 
-    def _eval(self, x_m, deriv: bool) -> np.ndarray:
+    def _locate(self, x: np.ndarray) -> tuple:
+        """Per point: span index k, on-the-line flag, element index e and local coordinate xi."""
         T, starts, ends, nels, les, order, cols, T_own = self._table()
-        x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
         # span of each point: last span (by start) with start <= x; half-open except the last
         pos = np.searchsorted(starts[order], x, side="right") - 1
         valid = pos >= 0
@@ -216,30 +216,57 @@ class ModalBasis:
         le = les[k]
         xl = x - starts[k]
         e = np.clip(np.floor(xl / le).astype(np.int64), 0, nels[k] - 1)
-        xi = xl / le - e
+        return k, valid, e, xl / le - e, le
+
+    def span_of(self, x_m) -> np.ndarray:
+        """Index (into ``spans_fe``) of the span each point loads, -1 off the line."""
+        x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
+        k, valid, *_ = self._locate(x)
+        return np.where(valid, k, -1)
+
+    def mode_columns(self, spans) -> np.ndarray:
+        """Indices of the modes of ``spans`` (span indices, ascending): ascending mode indices."""
+        cols = self._table()[6]
+        return np.concatenate([np.arange(cols[s], cols[s + 1]) for s in spans] or [np.zeros(0, np.int64)])
+
+    def _eval(self, x_m, deriv: bool, spans=None) -> np.ndarray:
+        T, starts, ends, nels, les, order, cols, T_own = self._table()
+        x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
+        k, valid, e, xi, le = self._locate(x)
         xi2 = xi * xi
         if deriv:
             H = (((-6 * xi + 6 * xi2) / le), 1 - 4 * xi + 3 * xi2, ((6 * xi - 6 * xi2) / le), -2 * xi + 3 * xi2)
         else:
             xi3 = xi2 * xi
             H = (1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3, le * (-xi2 + xi3))
+        if spans is None:            # every mode of the line: columns as in the basis
+            first, n_out = cols[:-1], self.n_modes
+        else:                        # the modes of ``spans`` only, in that order (mode_columns)
+            first = np.full(len(self.spans_fe), -1, np.int64)
+            n_out = 0
+            for s in spans:
+                first[s] = n_out
+                n_out += cols[s + 1] - cols[s]
         # a mode lives on one span: sum over each point's own span's modes only (the twin evaluates
         # every step's magnet positions; over all modes of a long line this was a fifth of its time)
-        out = np.zeros((x.size, self.n_modes))
+        out = np.zeros((x.size, n_out))
         for span in np.unique(k[valid]):
+            if first[span] < 0:
+                raise ValueError(f"shapes: a point lies on span {span}, which is not among {list(spans)}")
             i = np.flatnonzero(valid & (k == span))
             Ts, ei = T_own[span], e[i]
-            out[i, cols[span]:cols[span + 1]] = H[0][i, None] * Ts[2 * ei] + H[1][i, None] * Ts[2 * ei + 1] \
-                + H[2][i, None] * Ts[2 * ei + 2] + H[3][i, None] * Ts[2 * ei + 3]
+            out[i, first[span]:first[span] + cols[span + 1] - cols[span]] = H[0][i, None] * Ts[2 * ei] \
+                + H[1][i, None] * Ts[2 * ei + 1] + H[2][i, None] * Ts[2 * ei + 2] + H[3][i, None] * Ts[2 * ei + 3]
         return out
 
-    def shapes_at(self, x_m) -> np.ndarray:
-        """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans."""
-        return self._eval(x_m, False)
+    def shapes_at(self, x_m, spans=None) -> np.ndarray:
+        """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans. ``spans`` (ascending span
+        indices covering every point on the line): only their modes' columns (``mode_columns``)."""
+        return self._eval(x_m, False, spans)
 
-    def slopes_at(self, x_m) -> np.ndarray:
-        """d phi_j / dx at x: (len(x), n_modes)."""
-        return self._eval(x_m, True)
+    def slopes_at(self, x_m, spans=None) -> np.ndarray:
+        """d phi_j / dx at x: (len(x), n_modes) (``spans`` as for ``shapes_at``)."""
+        return self._eval(x_m, True, spans)
 
 
 class Guideway:

@@ -305,6 +305,9 @@ class TwinStepper:
         self._Ey = np.ascontiguousarray(E[:, :m])
         self._Eyd = np.ascontiguousarray(E[:, m:2 * m])
         self._EN = np.ascontiguousarray(E[:, 2 * m:])
+        # the kernel's matrices, transposed (see _kernel)
+        self._kmats = tuple(np.ascontiguousarray(a.T) for a in (self._OL, self._GL, self._ABd0, self._Bd1, self._O,
+                                                               self._OD, self._Ey, self._Eyd))
         self._free_T = _free_transition(self._gq, self._c2zw, h)
         self._free_pow: dict[int, np.ndarray] = {}
         self._obs_for = None
@@ -337,16 +340,20 @@ class TwinStepper:
         self._F = F
 
     # ----------------------------------------------------------------------------------------
-    def _prepare(self, pos: np.ndarray, vel: np.ndarray, spans=None, modes=None) -> dict:
-        """Position-dependent quantities for a block of steps (vectorised); with ``spans`` only the
-        columns of ``modes`` (the modes of those spans, ``ModalBasis.mode_columns``)."""
+    def _prepare(self, pos: np.ndarray, vel: np.ndarray, local: bool = False) -> dict:
+        """Position-dependent quantities for a block of steps (vectorised). ``local``: only the
+        modes of the spans under the magnets (``modes``, the columns of every modal array)."""
         m = self._m
         X = pos[:, None] + self.magnet_offsets_m[None, :]
         Xf = X.ravel()
-        phi = self.modal.shapes_at(Xf, spans)
+        if local:
+            spans, phi, dphi = self.modal.local_shapes_at(Xf)
+            modes = self.modal.mode_columns(spans)
+        else:
+            phi, dphi, modes = self.modal.shapes_at(Xf), self.modal.slopes_at(Xf), None
         nq = phi.shape[1]
         phi = phi.reshape(X.shape[0], m, nq)
-        dphi = self.modal.slopes_at(Xf, spans).reshape(X.shape[0], m, nq)
+        dphi = dphi.reshape(X.shape[0], m, nq)
         r = self.irregularity.elevation(Xf).reshape(X.shape)
         rd = self.irregularity.slope(Xf).reshape(X.shape) * vel[:, None]
         g = self._gq if modes is None else self._gq[modes]
@@ -357,13 +364,17 @@ class TwinStepper:
         P = phig @ phiT
         Qc = (dphi * g[None, None, :]) @ phiT
         Q = (2 / self.dt_s) * P + vel[:, None, None] * Qc
-        out = {"phi": phi, "dphi": dphi, "phiT": phiT,
-               "r": r, "rd": rd}
+        # the kernel takes its matrices transposed (phiF: phiT's transpose)
+        out = {"modes": modes, "phit": np.ascontiguousarray(np.transpose(phi, (0, 2, 1))),
+               "dphit": np.ascontiguousarray(np.transpose(dphi, (0, 2, 1))),
+               "phiF": phi * gain[None, None, :], "r": r, "rd": rd}
         if self.method == "newmark":
             Ey, Eyd = self._E[:, :m], self._E[:, m:2 * m]
             S = np.linalg.inv(np.eye(m)[None] + Ey @ P + Eyd @ Q)
-            out["S"] = S
-            out["SEN"] = S @ self._E[:, 2 * m:]
+            out["St"] = np.ascontiguousarray(np.transpose(S, (0, 2, 1)))
+            out["SENt"] = np.ascontiguousarray(np.transpose(S @ self._E[:, 2 * m:], (0, 2, 1)))
+        else:
+            out["St"] = out["SENt"] = np.zeros((1, m, m))
         return out
 
     def advance(self, t_end_s: float, speed_mps: float | None = None) -> PassResult:
@@ -414,18 +425,11 @@ class TwinStepper:
             return self._run_block_full(pos, vel)
         ns = pos.size
         m, nq = self._m, self.modal.n_modes
-        X = pos[:, None] + self.magnet_offsets_m[None, :]
-        k_span = self.modal.span_of(X.ravel())
-        spans = np.unique(k_span[k_span >= 0])
-        act = self.modal.mode_columns(spans)
-        pre = self._prepare(pos, vel, spans, act)
+        pre = self._prepare(pos, vel, local=True)
+        act = pre["modes"]
         lev = self.vehicle.levitation
         h = self.dt_s
         newmark = self.method == "newmark"
-        if newmark:
-            S_all, SEN_all = pre["S"], pre["SEN"]
-        else:
-            S_all = SEN_all = np.zeros((1, m, m))
         k0 = self._k
         out_idx = _output_steps(k0, ns, self.n_sub)
         no = out_idx.size
@@ -439,9 +443,8 @@ class TwinStepper:
         rec_it = np.zeros(no, dtype=np.int64)
         _KERNEL(newmark, h, float(lev.nominal_gap_m), float(lev.static_current_a), lev.force_coeff,
                 lev.static_force_n, self.tol * float(np.mean(lev.static_force_n)), int(self.max_iter),
-                self._OL, self._GL, self._ABd0, self._Bd1, self._O, self._OD, self._Ey, self._Eyd,
-                self._gq[act], self._c2zw[act], pre["phi"], pre["dphi"], pre["phiT"], pre["r"], pre["rd"],
-                np.ascontiguousarray(vel, dtype=float), S_all, SEN_all,
+                *self._kmats, self._gq[act], self._c2zw[act], pre["phit"], pre["dphit"], pre["phiF"],
+                pre["r"], pre["rd"], np.ascontiguousarray(vel, dtype=float), pre["St"], pre["SENt"],
                 x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
                 *self._saturation(lev))
         self._x, self._u, self._F = x, u, F
@@ -509,10 +512,6 @@ class TwinStepper:
         m = self._m
         h = self.dt_s
         newmark = self.method == "newmark"
-        if newmark:
-            S_all, SEN_all = pre["S"], pre["SEN"]
-        else:
-            S_all = SEN_all = np.zeros((1, m, m))
         k0 = self._k
         out_idx = np.array([i for i in range(ns) if (k0 + i + 1) % self.n_sub == 0], dtype=np.int64)
         no = out_idx.size
@@ -525,10 +524,8 @@ class TwinStepper:
         rec_it = np.zeros(no, dtype=np.int64)
         _KERNEL(newmark, h, float(lev.nominal_gap_m), float(lev.static_current_a), lev.force_coeff,
                 lev.static_force_n, self.tol * float(np.mean(lev.static_force_n)), int(self.max_iter),
-                self._OL, self._GL, self._ABd0, self._Bd1, self._O, self._OD,
-                np.ascontiguousarray(self._E[:, :m]), np.ascontiguousarray(self._E[:, m:2 * m]),
-                self._gq, self._c2zw, pre["phi"], pre["dphi"], pre["phiT"], pre["r"], pre["rd"],
-                np.ascontiguousarray(vel, dtype=float), S_all, SEN_all,
+                *self._kmats, self._gq, self._c2zw, pre["phit"], pre["dphit"], pre["phiF"], pre["r"], pre["rd"],
+                np.ascontiguousarray(vel, dtype=float), pre["St"], pre["SENt"],
                 state[0], state[1], state[2], state[3], state[4], state[5],
                 out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it, *self._saturation(lev))
         self._x, self._u, self._q, self._qd, self._qdd, self._F = state
@@ -613,27 +610,31 @@ def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: flo
     return wp, z * g, g
 
 
-def _mv(A, x):
-    return A @ x
-
-
-def _mv_loop(A, x):
-    n, k = A.shape
-    out = np.empty(n)
+def _mvt_into(out, At, x):
+    """out = A @ x from At = A^T: each out[i] sums A[i, j] x[j] over j = 0, 1, ... in order (the
+    rounding of a row-by-row loop) while the inner loop over i runs over contiguous memory
+    without a carried dependency (SIMD; a row-by-row dot product waits on its accumulator)."""
+    k, n = At.shape
     for i in range(n):
-        acc = 0.0
-        for j in range(k):
-            acc += A[i, j] * x[j]
-        out[i] = acc
-    return out
+        out[i] = 0.0
+    for j in range(k):
+        xj = x[j]
+        for i in range(n):
+            out[i] += At[j, i] * xj
 
 
-def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GL, phi, phiT, dphi, gq, SEN, a2, v, m):
+def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GLt, phit, phiF, dphit, gq, SENt, a2, v, m):
     """Newton step dN for res(N) = F_true(N) - F_coupled(N) = 0 with saturating currents.
 
     Within a step the command current and the gap are affine in the force remainder N (rail
     through the condensed guideway compliance P, Q; vehicle through GL), so the Jacobian is exact
-    up to the force law's curvature: J = diag(dF/dI [unclipped]) D_I + diag(dF/dgap) D_gap - SEN."""
+    up to the force law's curvature: J = diag(dF/dI [unclipped]) D_I + diag(dF/dgap) D_gap - SEN.
+    Matrices come transposed as in :func:`_kernel`."""
+    GL = np.ascontiguousarray(GLt.T)
+    phi = np.ascontiguousarray(phit.T)
+    phiT = np.ascontiguousarray(phiF.T)
+    dphi = np.ascontiguousarray(dphit.T)
+    SEN = np.ascontiguousarray(SENt.T)
     m2 = 2 * m
     m3 = 3 * m
     P = phi @ (gq.reshape(-1, 1) * phiT)
@@ -653,8 +654,8 @@ def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GL, phi, phiT, dphi, g
     return np.linalg.solve(J, res)
 
 
-def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O, OD, Ey, Eyd, gq, c2zw,
-            phi_all, dphi_all, phiT_all, r_all, rd_all, vel, S_all, SEN_all,
+def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OLt, GLt, ABd0t, Bd1t, Ot, ODt, Eyt, Eydt, gq, c2zw,
+            phit_all, dphit_all, phiF_all, r_all, rd_all, vel, St_all, SENt_all,
             x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
             sat=False, i_lo=0.0, i_hi=0.0, sat_excess=np.zeros(1)):
     """Time loop over one block (state arrays x, u, q, qd, qdd, F updated in place).
@@ -667,18 +668,47 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     (the control law's acceleration feed-through path is cut), so with ``sat`` the force
     remainder is solved by Newton (:func:`_sat_newton_step`). ``i_lo``, ``sat_excess`` unused.
 
-    Plain numpy code that numba can compile unchanged (it is jitted when numba is installed,
-    ~20x faster; otherwise it runs as ordinary Python)."""
+    Matrices come transposed (``*t``; ``phiF`` = phi^T's transpose, the magnet-to-mode force map):
+    ``_mvt_into`` then sums each product over the same index order as a row-by-row product, in a loop
+    the compiler can vectorise.
+
+    Work arrays are allocated once per block and every per-step quantity is computed in place,
+    element by element in the order of the vector expressions it replaces (the same rounding; an
+    allocation per small vector was half the compiled loop's time). Plain code that numba compiles
+    (it is jitted when numba is installed; otherwise it runs as ordinary Python, much slower)."""
     m = F0.size
     m2 = 2 * m
     m3 = 3 * m
     m4 = 4 * m
     nx = x.size
+    nq = q.size
     a4 = 4.0 / (h * h)
     a2 = 2.0 / h
     ns = vel.size
     xu = np.empty(nx + u.size)
+    xp = np.empty(nx)
+    oxp = np.empty(OLt.shape[1])
+    o = np.empty(GLt.shape[1])
+    o2 = np.empty(Ot.shape[1])
+    o3 = np.empty(Ot.shape[1])
+    qp = np.empty(nq)
+    qdp = np.empty(nq)
+    gF = np.empty(nq)
     ucur = np.empty(m3)
+    yp = np.empty(m)
+    ydp = np.empty(m)
+    base = np.empty(m)
+    Sb = np.zeros(m)
+    y = np.empty(m)
+    yd = np.empty(m)
+    pg = np.empty(m)
+    t1 = np.empty(m)
+    t2 = np.empty(m)
+    gap = np.empty(m)
+    cur = np.empty(m)
+    cur_cmd = np.empty(m)
+    Ft = np.empty(m)
+    res = np.empty(m)
     N = u[m2:].copy()
     xc = x.copy()
     uc = u.copy()
@@ -690,88 +720,124 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     it_max = 0
     n_out = out_idx.size
     for i in range(ns):
-        phi = phi_all[i]
-        phiT = phiT_all[i]
-        dphi = dphi_all[i]
+        phit = phit_all[i]
+        phiF = phiF_all[i]
+        dphit = dphit_all[i]
         v = vel[i]
         xu[:nx] = xc
         xu[nx:] = uc
-        xp = _mv(ABd0, xu)
-        oxp = _mv(OL, xp)
-        qp = (a4 * qc + (4.0 / h) * qdc + qddc + c2zw * (a2 * qc + qdc)) * gq
-        qdp = a2 * (qp - qc) - qdc
-        yp = r_all[i] + _mv(phi, qp)
-        ydp = rd_all[i] + _mv(phi, qdp) + v * (_mv(dphi, qp))
-        Sb = np.zeros(m)
+        _mvt_into(xp, ABd0t, xu)
+        _mvt_into(oxp, OLt, xp)
+        for k in range(nq):
+            qp[k] = (a4 * qc[k] + (4.0 / h) * qdc[k] + qddc[k] + c2zw[k] * (a2 * qc[k] + qdc[k])) * gq[k]
+            qdp[k] = a2 * (qp[k] - qc[k]) - qdc[k]
+        _mvt_into(t1, phit, qp)
+        for a in range(m):
+            yp[a] = r_all[i, a] + t1[a]
+        _mvt_into(t1, phit, qdp)
+        _mvt_into(t2, dphit, qp)
+        for a in range(m):
+            ydp[a] = rd_all[i, a] + t1[a] + v * t2[a]
         if newmark:
-            base = F0 + oxp[m4:] + _mv(Ey, yp) + _mv(Eyd, ydp)
-            Sb = _mv(S_all[i], base)
+            _mvt_into(t1, Eyt, yp)
+            _mvt_into(t2, Eydt, ydp)
+            for a in range(m):
+                base[a] = F0[a] + oxp[m4 + a] + t1[a] + t2[a]
+            _mvt_into(Sb, St_all[i], base)
         it = 0
         while it < max_iter:
             it += 1
             if newmark:
-                Fc = Sb + _mv(SEN_all[i], N)
-            gF = gq * (_mv(phiT, Fc))
-            pg = _mv(phi, gF)
-            y = yp - pg
-            yd = ydp - a2 * pg - v * (_mv(dphi, gF))
-            ucur[:m] = y
-            ucur[m:m2] = yd
-            ucur[m2:] = N
-            o = oxp + _mv(GL, ucur)
-            gap = g0 + y - o[:m]
-            cur = I0 + o[m3:m4]
+                _mvt_into(t1, SENt_all[i], N)
+                for a in range(m):
+                    Fc[a] = Sb[a] + t1[a]
+            _mvt_into(gF, phiF, Fc)
+            for k in range(nq):
+                gF[k] = gq[k] * gF[k]
+            _mvt_into(pg, phit, gF)
+            _mvt_into(t2, dphit, gF)
+            for a in range(m):
+                y[a] = yp[a] - pg[a]
+                yd[a] = ydp[a] - a2 * pg[a] - v * t2[a]
+                ucur[a] = y[a]
+                ucur[m + a] = yd[a]
+                ucur[m2 + a] = N[a]
+            _mvt_into(o, GLt, ucur)
+            for k in range(o.size):
+                o[k] = oxp[k] + o[k]
+            for a in range(m):
+                gap[a] = g0 + y[a] - o[a]
+                cur[a] = I0 + o[m3 + a]
             if sat:
-                cur_cmd = cur
-                cur = I0 + i_hi * np.tanh((cur_cmd - I0) / i_hi)
-            Ft = Cc * (cur / gap) ** 2
+                for a in range(m):
+                    cur_cmd[a] = cur[a]
+                    cur[a] = I0 + i_hi * np.tanh((cur_cmd[a] - I0) / i_hi)
+            for a in range(m):
+                Ft[a] = Cc[a] * (cur[a] / gap[a]) ** 2
             if newmark:
-                res = Ft - Fc
+                for a in range(m):
+                    res[a] = Ft[a] - Fc[a]
                 if sat:
-                    N = N - _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GL, phi, phiT, dphi,
-                                             gq, SEN_all[i], a2, v, m)
+                    dN = _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GLt, phit, phiF, dphit,
+                                          gq, SENt_all[i], a2, v, m)
+                    for a in range(m):
+                        N[a] = N[a] - dN[a]
                 else:
-                    N = N + res
-                Fc = Ft
-                if np.abs(res).max() < tol_abs:
+                    for a in range(m):
+                        N[a] = N[a] + res[a]
+                Fc[:] = Ft
+                if _absmax(res) < tol_abs:
                     break
             else:
-                res = Ft - (F0 + o[m4:])      # o[m4:] = F_lin - F0 + N
-                dF = np.abs(Ft - Fc).max()
-                dN = np.abs(res).max()
-                Fc = Ft
-                N = N + res
+                for a in range(m):
+                    res[a] = Ft[a] - (F0[a] + o[m4 + a])      # o[m4:] = F_lin - F0 + N
+                    t1[a] = Ft[a] - Fc[a]
+                dF = _absmax(t1)
+                dN = _absmax(res)
+                Fc[:] = Ft
+                for a in range(m):
+                    N[a] = N[a] + res[a]
                 if dF < tol_abs and dN < tol_abs:
                     break
         if it > it_max:
             it_max = it
-        gF = gq * (_mv(phiT, Fc))
-        qn = qp - gF
-        pg = _mv(phi, gF)
-        y = yp - pg
-        yd = ydp - a2 * pg - v * (_mv(dphi, gF))
-        ucur[:m] = y
-        ucur[m:m2] = yd
-        ucur[m2:] = N
-        uc = ucur.copy()
-        xc = xp + _mv(Bd1, uc)
-        qddc = a4 * (qn - qc) - (4.0 / h) * qdc - qddc
-        qdc = a2 * (qn - qc) - qdc
-        qc = qn
+        _mvt_into(gF, phiF, Fc)
+        for k in range(nq):
+            gF[k] = gq[k] * gF[k]
+        _mvt_into(pg, phit, gF)
+        _mvt_into(t2, dphit, gF)
+        for a in range(m):
+            y[a] = yp[a] - pg[a]
+            yd[a] = ydp[a] - a2 * pg[a] - v * t2[a]
+            uc[a] = y[a]
+            uc[m + a] = yd[a]
+            uc[m2 + a] = N[a]
+        _mvt_into(xc, Bd1t, uc)
+        for k in range(nx):
+            xc[k] = xp[k] + xc[k]
+        for k in range(nq):
+            qn = qp[k] - gF[k]
+            qddc[k] = a4 * (qn - qc[k]) - (4.0 / h) * qdc[k] - qddc[k]
+            qdc[k] = a2 * (qn - qc[k]) - qdc[k]
+            qc[k] = qn
         if j < n_out and out_idx[j] == i:
-            o2 = _mv(O, xc) + _mv(OD, uc)
-            gap = g0 + y - o2[:m]
-            cur = I0 + o2[m3:m4]
-            if sat:
-                cur = I0 + i_hi * np.tanh((cur - I0) / i_hi)
+            _mvt_into(o2, Ot, xc)
+            _mvt_into(o3, ODt, uc)
+            for k in range(o2.size):
+                o2[k] = o2[k] + o3[k]
+            for a in range(m):
+                gap[a] = g0 + y[a] - o2[a]
+                cur[a] = I0 + o2[m3 + a]
+                if sat:
+                    cur[a] = I0 + i_hi * np.tanh((cur[a] - I0) / i_hi)
+                rec_mag[j, 0, a] = o2[m2 + a]
+                rec_mag[j, 1, a] = gap[a]
+                rec_mag[j, 2, a] = cur[a]
+                rec_mag[j, 3, a] = Cc[a] * (cur[a] / gap[a]) ** 2
             rec_x[j] = xc
             rec_u[j] = uc
             rec_q[j] = qc
             rec_qdd[j] = qddc
-            rec_mag[j, 0] = o2[m2:m3]
-            rec_mag[j, 1] = gap
-            rec_mag[j, 2] = cur
-            rec_mag[j, 3] = Cc * (cur / gap) ** 2
             rec_it[j] = it_max
             it_max = 0
             j += 1
@@ -783,14 +849,29 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     F[:] = Fc
 
 
+def _absmax(v):
+    """max |v_i| (NaN if any is NaN, like np.abs(v).max())."""
+    r = 0.0
+    for a in range(v.size):
+        e = abs(v[a])
+        if e > r or e != e:
+            r = e
+            if e != e:
+                return e
+    return r
+
+
 try:  # optional accelerator
     import numba as _numba
-    _mv = _numba.njit(cache=True)(_mv_loop)
+    _mvt_into = _numba.njit(cache=True)(_mvt_into)
+    _absmax = _numba.njit(cache=True)(_absmax)
     _sat_newton_step = _numba.njit(cache=True)(_sat_newton_step)
     _KERNEL = _numba.njit(cache=True)(_kernel)
     _FREE = _numba.njit(cache=True)(_free_steps)
     HAVE_NUMBA = True
-except Exception:  # pragma: no cover - numba missing or broken: plain Python (same results, slower)
+except Exception:  # pragma: no cover - numba missing or broken: plain Python (slower; BLAS products)
+    def _mvt_into(out, At, x):
+        np.dot(x, At, out=out)
     _KERNEL = _kernel
     _FREE = _free_steps
     HAVE_NUMBA = False

@@ -200,13 +200,17 @@ class ModalBasis:
             cols = np.concatenate([[0], np.cumsum(nmods)])
             # each span's own columns only (the others are zero there), for _eval's span-local sum
             T_own = [T[k][:, cols[k]:cols[k + 1]] for k in range(len(self.spans_fe))]
-            tab = (T, starts, ends, nels, les, order, cols, T_own)
+            # the same, padded to the most modes of a span, for _hermite_rows
+            T_pad = np.zeros((len(self.spans_fe), ndof, max(int(nmods.max(initial=0)), 1)))
+            for k, Ts in enumerate(T_own):
+                T_pad[k, :, :Ts.shape[1]] = Ts
+            tab = (T, starts, ends, nels, les, order, cols, T_own, T_pad, nmods.astype(np.int64))
             object.__setattr__(self, "_tab", tab)
         return tab
 
     def _locate(self, x: np.ndarray) -> tuple:
         """Per point: span index k, on-the-line flag, element index e and local coordinate xi."""
-        T, starts, ends, nels, les, order, cols, T_own = self._table()
+        T, starts, ends, nels, les, order, cols = self._table()[:7]
         # span of each point: last span (by start) with start <= x; half-open except the last
         pos = np.searchsorted(starts[order], x, side="right") - 1
         valid = pos >= 0
@@ -229,44 +233,83 @@ class ModalBasis:
         cols = self._table()[6]
         return np.concatenate([np.arange(cols[s], cols[s + 1]) for s in spans] or [np.zeros(0, np.int64)])
 
-    def _eval(self, x_m, deriv: bool, spans=None) -> np.ndarray:
-        T, starts, ends, nels, les, order, cols, T_own = self._table()
+    def _eval(self, x_m, derivs: tuple[bool, ...], spans=None, own: bool = False) -> list:
+        """Shapes (False) and/or slopes (True) at x_m, one (len(x), n_columns) array each; ``own``:
+        the columns of the spans the points lie on, those spans first in the list."""
+        tab = self._table()
+        cols, T_pad, nmods = tab[6], tab[8], tab[9]
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
         k, valid, e, xi, le = self._locate(x)
-        xi2 = xi * xi
-        if deriv:
-            H = (((-6 * xi + 6 * xi2) / le), 1 - 4 * xi + 3 * xi2, ((6 * xi - 6 * xi2) / le), -2 * xi + 3 * xi2)
-        else:
-            xi3 = xi2 * xi
-            H = (1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3, le * (-xi2 + xi3))
+        if own:
+            spans = np.unique(k[valid])
         if spans is None:            # every mode of the line: columns as in the basis
-            first, n_out = cols[:-1], self.n_modes
+            first, n_out = cols[:-1].astype(np.int64), self.n_modes
         else:                        # the modes of ``spans`` only, in that order (mode_columns)
             first = np.full(len(self.spans_fe), -1, np.int64)
             n_out = 0
             for s in spans:
                 first[s] = n_out
                 n_out += cols[s + 1] - cols[s]
-        # a mode lives on one span: sum over each point's own span's modes only (the twin evaluates
-        # every step's magnet positions; over all modes of a long line this was a fifth of its time)
-        out = np.zeros((x.size, n_out))
-        for span in np.unique(k[valid]):
-            if first[span] < 0:
-                raise ValueError(f"shapes: a point lies on span {span}, which is not among {list(spans)}")
-            i = np.flatnonzero(valid & (k == span))
-            Ts, ei = T_own[span], e[i]
-            out[i, first[span]:first[span] + cols[span + 1] - cols[span]] = H[0][i, None] * Ts[2 * ei] \
-                + H[1][i, None] * Ts[2 * ei + 1] + H[2][i, None] * Ts[2 * ei + 2] + H[3][i, None] * Ts[2 * ei + 3]
-        return out
+            missing = np.setdiff1d(k[valid], spans)
+            if missing.size:
+                raise ValueError(f"shapes: points lie on span {int(missing[0])}, which is not among {list(spans)}")
+        outs = []
+        for deriv in derivs:
+            out = np.zeros((x.size, n_out))
+            _HERMITE_ROWS(k, valid, e, xi, le, T_pad, nmods, first, bool(deriv), out)
+            outs.append(out)
+        return [spans] + outs if own else outs
 
     def shapes_at(self, x_m, spans=None) -> np.ndarray:
         """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans. ``spans`` (ascending span
         indices covering every point on the line): only their modes' columns (``mode_columns``)."""
-        return self._eval(x_m, False, spans)
+        return self._eval(x_m, (False,), spans)[0]
 
     def slopes_at(self, x_m, spans=None) -> np.ndarray:
         """d phi_j / dx at x: (len(x), n_modes) (``spans`` as for ``shapes_at``)."""
-        return self._eval(x_m, True, spans)
+        return self._eval(x_m, (True,), spans)[0]
+
+    def local_shapes_at(self, x_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(spans, shapes, slopes): the spans the points lie on (ascending) and ``shapes_at`` /
+        ``slopes_at`` with those spans' columns only (``mode_columns(spans)``)."""
+        spans, phi, dphi = self._eval(x_m, (False, True), own=True)
+        return spans, phi, dphi
+
+
+def _hermite_rows(k, valid, e, xi, le, T_pad, nmods, first, deriv, out):
+    """out[p, first[k] + j] = mode j of span k = k[p] at point p: the Hermite interpolation of its
+    nodal values on element e[p] at local coordinate xi[p] (written by hand: a point only needs its
+    own span's few modes; numpy's per-span gathers were most of the twin's shape evaluation)."""
+    for p in range(k.size):
+        if not valid[p]:
+            continue
+        s = k[p]
+        c0 = first[s]
+        x1 = xi[p]
+        x2 = x1 * x1
+        ln = le[p]
+        if deriv:
+            h0 = (-6 * x1 + 6 * x2) / ln
+            h1 = 1 - 4 * x1 + 3 * x2
+            h2 = (6 * x1 - 6 * x2) / ln
+            h3 = -2 * x1 + 3 * x2
+        else:
+            x3 = x2 * x1
+            h0 = 1 - 3 * x2 + 2 * x3
+            h1 = ln * (x1 - 2 * x2 + x3)
+            h2 = 3 * x2 - 2 * x3
+            h3 = ln * (-x2 + x3)
+        r = 2 * e[p]
+        for j in range(nmods[s]):
+            out[p, c0 + j] = h0 * T_pad[s, r, j] + h1 * T_pad[s, r + 1, j] + h2 * T_pad[s, r + 2, j] \
+                + h3 * T_pad[s, r + 3, j]
+
+
+try:  # optional accelerator (as in coupling: the same code runs as plain Python without numba)
+    import numba as _numba
+    _HERMITE_ROWS = _numba.njit(cache=True)(_hermite_rows)
+except Exception:  # pragma: no cover
+    _HERMITE_ROWS = _hermite_rows
 
 
 class Guideway:

@@ -209,18 +209,17 @@ class ModalBasis:
         return tab
 
     def _locate(self, x: np.ndarray) -> tuple:
-        """Per point: span index k, on-the-line flag, element index e and local coordinate xi."""
+        """Per point: span index k, on-the-line flag, element index e, local coordinate xi, element
+        length; and which spans hold a point."""
         T, starts, ends, nels, les, order, cols = self._table()[:7]
-        # span of each point: last span (by start) with start <= x; half-open except the last
-        pos = np.searchsorted(starts[order], x, side="right") - 1
-        valid = pos >= 0
-        k = order[np.clip(pos, 0, None)]
-        last = k == order[-1]
-        valid &= (x < ends[k]) | (last & (x <= ends[k]))
-        le = les[k]
-        xl = x - starts[k]
-        e = np.clip(np.floor(xl / le).astype(np.int64), 0, nels[k] - 1)
-        return k, valid, e, xl / le - e, le
+        n = x.size
+        k, e = np.empty(n, np.int64), np.empty(n, np.int64)
+        valid = np.empty(n, np.bool_)
+        xi, le = np.empty(n), np.empty(n)
+        touched = np.zeros(len(self.spans_fe), np.bool_)
+        _LOCATE(x, np.ascontiguousarray(starts[order]), order.astype(np.int64), starts, ends, les,
+                nels.astype(np.int64), k, valid, e, xi, le, touched)
+        return k, valid, e, xi, le, touched
 
     def span_of(self, x_m) -> np.ndarray:
         """Index (into ``spans_fe``) of the span each point loads, -1 off the line."""
@@ -239,9 +238,9 @@ class ModalBasis:
         tab = self._table()
         cols, T_pad, nmods = tab[6], tab[8], tab[9]
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
-        k, valid, e, xi, le = self._locate(x)
+        k, valid, e, xi, le, touched = self._locate(x)
         if own:
-            spans = np.unique(k[valid])
+            spans = np.flatnonzero(touched)
         if spans is None:            # every mode of the line: columns as in the basis
             first, n_out = cols[:-1].astype(np.int64), self.n_modes
         else:                        # the modes of ``spans`` only, in that order (mode_columns)
@@ -250,7 +249,7 @@ class ModalBasis:
             for s in spans:
                 first[s] = n_out
                 n_out += cols[s + 1] - cols[s]
-            missing = np.setdiff1d(k[valid], spans)
+            missing = np.flatnonzero(touched & (first < 0))
             if missing.size:
                 raise ValueError(f"shapes: points lie on span {int(missing[0])}, which is not among {list(spans)}")
         outs = []
@@ -274,6 +273,27 @@ class ModalBasis:
         ``slopes_at`` with those spans' columns only (``mode_columns(spans)``)."""
         spans, phi, dphi = self._eval(x_m, (False, True), own=True)
         return spans, phi, dphi
+
+
+def _locate_points(x, starts_sorted, order, starts, ends, les, nels, k, valid, e, xi, le, touched):
+    """``ModalBasis._locate`` point by point: the span of x is the last span (by start) with start
+    <= x, half-open except the last span; element and local coordinate on it."""
+    last_span = order[order.size - 1]
+    for p in range(x.size):
+        xp = x[p]
+        pos = np.searchsorted(starts_sorted, xp, side="right") - 1
+        s = order[max(pos, 0)]
+        ok = pos >= 0 and (xp < ends[s] or (s == last_span and xp <= ends[s]))
+        k[p] = s
+        valid[p] = ok
+        ln = les[s]
+        xl = xp - starts[s]
+        ep = min(max(int(np.floor(xl / ln)), 0), nels[s] - 1) if ok else 0
+        e[p] = ep
+        xi[p] = xl / ln - ep
+        le[p] = ln
+        if ok:
+            touched[s] = True
 
 
 def _hermite_rows(k, valid, e, xi, le, T_pad, nmods, first, deriv, out):
@@ -308,8 +328,10 @@ def _hermite_rows(k, valid, e, xi, le, T_pad, nmods, first, deriv, out):
 try:  # optional accelerator (as in coupling: the same code runs as plain Python without numba)
     import numba as _numba
     _HERMITE_ROWS = _numba.njit(cache=True)(_hermite_rows)
+    _LOCATE = _numba.njit(cache=True)(_locate_points)
 except Exception:  # pragma: no cover
     _HERMITE_ROWS = _hermite_rows
+    _LOCATE = _locate_points
 
 
 class Guideway:

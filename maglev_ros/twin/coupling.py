@@ -400,7 +400,7 @@ class TwinStepper:
             parts.append(self._run_block(pos, vel))
             done += nb
         self.speed_mps = v_new
-        return PassResult.concat(parts)
+        return parts[0] if len(parts) == 1 else PassResult.concat(parts)
 
     def _saturation(self, lev) -> tuple:
         """(sat, unused, L, unused) for the kernel: smooth current limit L = current_limit_a."""

@@ -180,45 +180,40 @@ class ModalBasis:
         return int(self.freq_hz.size)
 
     def _table(self) -> tuple:
-        """Mode shapes as nodal values on the full nodal DOF list of each span, (n_spans, ndof, nm)."""
+        """Per span: start, end, element count and length, the spans in order of their starts, each
+        span's first mode column (cols, n_spans + 1), its modes' nodal values on its full nodal DOF
+        list padded to the most modes of a span (T_pad, (n_spans, ndof, max modes)) and its mode
+        count. A mode lives on one span, so no table spans all modes (it grew with the square of
+        the line's length)."""
         tab = self.__dict__.get("_tab")
         if tab is None:
             n_el = max(fe.n_elements for fe in self.spans_fe)
             ndof = 2 * (n_el + 1)
-            T = np.zeros((len(self.spans_fe), ndof, self.n_modes))
-            col = 0
+            nmods = np.array([vec.shape[1] for vec in self.vectors], dtype=np.int64)
+            T_pad = np.zeros((len(self.spans_fe), ndof, max(int(nmods.max(initial=0)), 1)))
             for k, (fe, vec) in enumerate(zip(self.spans_fe, self.vectors)):
-                nmod = vec.shape[1]
-                T[k][fe.free_dofs, col:col + nmod] = vec
-                col += nmod
+                T_pad[k][fe.free_dofs, :vec.shape[1]] = vec
             starts = np.array([fe.span.start_m for fe in self.spans_fe])
             ends = np.array([fe.span.end_m for fe in self.spans_fe])
-            nels = np.array([fe.n_elements for fe in self.spans_fe])
+            nels = np.array([fe.n_elements for fe in self.spans_fe], dtype=np.int64)
             les = np.array([fe.element_length_m for fe in self.spans_fe])
-            order = np.argsort(starts)
-            nmods = np.array([vec.shape[1] for vec in self.vectors])
-            cols = np.concatenate([[0], np.cumsum(nmods)])
-            # each span's own columns only (the others are zero there), for _eval's span-local sum
-            T_own = [T[k][:, cols[k]:cols[k + 1]] for k in range(len(self.spans_fe))]
-            # the same, padded to the most modes of a span, for _hermite_rows
-            T_pad = np.zeros((len(self.spans_fe), ndof, max(int(nmods.max(initial=0)), 1)))
-            for k, Ts in enumerate(T_own):
-                T_pad[k, :, :Ts.shape[1]] = Ts
-            tab = (T, starts, ends, nels, les, order, cols, T_own, T_pad, nmods.astype(np.int64))
+            order = np.argsort(starts).astype(np.int64)
+            cols = np.concatenate([[0], np.cumsum(nmods)]).astype(np.int64)
+            tab = (starts, ends, nels, les, order, cols, T_pad, nmods)
             object.__setattr__(self, "_tab", tab)
         return tab
 
     def _locate(self, x: np.ndarray) -> tuple:
         """Per point: span index k, on-the-line flag, element index e, local coordinate xi, element
         length; and which spans hold a point."""
-        T, starts, ends, nels, les, order, cols = self._table()[:7]
+        starts, ends, nels, les, order = self._table()[:5]
         n = x.size
         k, e = np.empty(n, np.int64), np.empty(n, np.int64)
         valid = np.empty(n, np.bool_)
         xi, le = np.empty(n), np.empty(n)
         touched = np.zeros(len(self.spans_fe), np.bool_)
-        _LOCATE(x, np.ascontiguousarray(starts[order]), order.astype(np.int64), starts, ends, les,
-                nels.astype(np.int64), k, valid, e, xi, le, touched)
+        _LOCATE(x, np.ascontiguousarray(starts[order]), order, starts, ends, les, nels, k, valid, e, xi, le,
+                touched)
         return k, valid, e, xi, le, touched
 
     def span_of(self, x_m) -> np.ndarray:
@@ -229,14 +224,13 @@ class ModalBasis:
 
     def mode_columns(self, spans) -> np.ndarray:
         """Indices of the modes of ``spans`` (span indices, ascending): ascending mode indices."""
-        cols = self._table()[6]
+        cols = self._table()[5]
         return np.concatenate([np.arange(cols[s], cols[s + 1]) for s in spans] or [np.zeros(0, np.int64)])
 
     def _eval(self, x_m, derivs: tuple[bool, ...], spans=None, own: bool = False) -> list:
         """Shapes (False) and/or slopes (True) at x_m, one (len(x), n_columns) array each; ``own``:
         the columns of the spans the points lie on, those spans first in the list."""
-        tab = self._table()
-        cols, T_pad, nmods = tab[6], tab[8], tab[9]
+        cols, T_pad, nmods = self._table()[5:]
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
         k, valid, e, xi, le, touched = self._locate(x)
         if own:

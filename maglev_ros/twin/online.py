@@ -603,22 +603,31 @@ class OnlineTwin:
             return []
         t, buf = self._hist.view()
         t_cov = t[-1] + 1e-9
-        out, keep = [], deque()
-        for e in self._pending:
-            topic, blk, first, last = e
-            if first is None:
-                e[2] = first = self._rel(blk.stamp_ns)
-                e[3] = last = first + (blk.n_samples - 1) / blk.sample_rate_hz
-            if last > t_cov:
-                keep.append(e)
-                continue
-            tb = first + np.arange(blk.n_samples) / blk.sample_rate_hz
-            o = self._predict(topic, blk, tb, t, buf)
-            if o is not None:
-                out.append(o)
-        self._pending = keep
+        for e in reversed(self._pending):        # sample times once the twin's clock is known
+            if e[2] is not None:
+                break
+            blk = e[1]
+            e[2] = self._rel(blk.stamp_ns)
+            e[3] = e[2] + (blk.n_samples - 1) / blk.sample_rate_hz
+        out = []
+        if any(e[3] <= t_cov for e in self._pending):
+            keep = deque()
+            for e in self._pending:
+                topic, blk, first, last = e
+                if last > t_cov:
+                    keep.append(e)
+                    continue
+                tb = first + np.arange(blk.n_samples) / blk.sample_rate_hz
+                # the history's stretch around the block (np.interp copies the strided columns it
+                # is given; over the whole history that copy was most of a prediction's time)
+                lo = max(int(np.searchsorted(t, tb[0], side="right")) - 1, 0)
+                hi = int(np.searchsorted(t, tb[-1], side="left")) + 1
+                o = self._predict(topic, blk, tb, t[lo:hi], {k: v[lo:hi] for k, v in buf.items()})
+                if o is not None:
+                    out.append(o)
+            self._pending = keep
         # trim history older than the oldest pending block (keep 1 s margin)
-        t_keep = min([e[2] for e in keep] + [t[-1]]) - 1.0
+        t_keep = min(min((e[2] for e in self._pending), default=t[-1]), t[-1]) - 1.0
         i = int(np.searchsorted(t, t_keep))
         if i > 0:
             self._hist.drop(i)

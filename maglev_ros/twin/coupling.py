@@ -459,20 +459,19 @@ class TwinStepper:
         obs, shapes = self._observed()
         loaded = np.zeros(nq, bool)
         loaded[act] = True
+        in_act = loaded[obs]
         Qo = np.empty((no, obs.size))
         Qddo = np.empty((no, obs.size))
-        if obs.size:
-            in_act = loaded[obs]
-            where = np.searchsorted(act, obs[in_act])
-            Qo[:, in_act], Qddo[:, in_act] = rec_q[:, where], rec_qdd[:, where]
-            fo = obs[~in_act]
-            if fo.size:
-                fq, fqd, fqdd = self._q[fo], self._qd[fo], self._qdd[fo]
-                rq, rqdd = np.empty((no, fo.size)), np.empty((no, fo.size))
-                _FREE(h, self._gq[fo], self._c2zw[fo], ns, fq, fqd, fqdd, out_idx, rq, rqdd)
-                self._q[fo], self._qd[fo], self._qdd[fo] = fq, fqd, fqdd
-                Qo[:, ~in_act], Qddo[:, ~in_act] = rq, rqdd
-                loaded[fo] = True
+        where = np.searchsorted(act, obs[in_act])
+        Qo[:, in_act], Qddo[:, in_act] = rec_q[:, where], rec_qdd[:, where]
+        # (called with no modes too: compiled with the kernel, not first when a span rings alone)
+        fo = obs[~in_act]
+        fq, fqd, fqdd = self._q[fo], self._qd[fo], self._qdd[fo]
+        rq, rqdd = np.empty((no, fo.size)), np.empty((no, fo.size))
+        _FREE(h, self._gq[fo], self._c2zw[fo], ns, fq, fqd, fqdd, out_idx, rq, rqdd)
+        self._q[fo], self._qd[fo], self._qdd[fo] = fq, fqd, fqdd
+        Qo[:, ~in_act], Qddo[:, ~in_act] = rq, rqdd
+        loaded[fo] = True
         self._q[act], self._qd[act], self._qdd[act] = q, qd, qdd
         # every other mode: n steps of free vibration in one product per mode
         rest = np.flatnonzero(~loaded)

@@ -167,7 +167,8 @@ def print_split(label: str, total: float, s: dict) -> None:
     st = s.get("stepper", 0.0)
     inner = s.get("shapes+coupling", 0.0) + s.get("kernel", 0.0) + s.get("free modes", 0.0)
     other = total - st - s.get("irregularity", 0.0) - s.get("predictions", 0.0)
-    print(f"    {label:10s} {total:.4f} = stepper {st:.4f} [shapes+coupling matrices {s.get('shapes+coupling', 0):.4f}, "
+    print(f"    {label:10s} {total:.4f} = stepper {st:.4f} "
+          f"[shapes+coupling matrices {s.get('shapes+coupling', 0):.4f}, "
           f"kernel {s.get('kernel', 0):.4f}, free modes {s.get('free modes', 0):.4f}, rest {st - inner:.4f}] "
           f"+ irregularity profiler {s.get('irregularity', 0):.4f} + predictions {s.get('predictions', 0):.4f} "
           f"+ other {other:.4f}")
@@ -190,7 +191,7 @@ def online(bags: dict) -> None:
               f"before (every mode) {b:.4f}, after (span-local) {a:.4f} -> {b / a:.1f}x less; "
               f"target < 0.05 ({'meets' if a < 0.05 else 'ABOVE'}); runs before {', '.join(f'{x:.4f}' for x in before)}"
               f", after {', '.join(f'{x:.4f}' for x in after)}")
-        print("  profile per stage (CPU s per stream s; the clocks add ~1 %):")
+        print("  profile per stage (CPU s per stream s; measured with a clock around each stage, a separate run):")
         for label, ref in (("after", False), ("before", True)):
             total, split, _ = online_cost(md, items, dur, ref, stages=True)
             print_split(label, total, split)

@@ -16,6 +16,9 @@ class NodeSpec:
     # a processing node ends only when stopped: its end while the graph runs (even with exit
     # code 0, e.g. an outside SIGTERM) is a failure of the graph
     runs_until_stopped: bool = False
+    # ends by itself once the replay has finished (the demo's summary): the launcher waits for it
+    # before stopping the others
+    finishes: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {

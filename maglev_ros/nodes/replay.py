@@ -336,7 +336,7 @@ def _protocol_nodes(node: ReplayNode, say: bool = False) -> list[str]:
     a status writer (its latched status is on its way). The others are not waited for (``say``:
     log them, once)."""
     writers = {i.node_name for i in node.get_publishers_info_by_topic(node.resolve_topic_name(TOPIC_STATUS))}
-    names = [n.lstrip("/") for n in node.wait_nodes]
+    names = [n.rsplit("/", 1)[-1] for n in node.wait_nodes]   # a status names its node without namespace
     taking_part = [n for n in names if n in node.waiter.statuses or n in writers]
     silent = [n for n in names if n not in taking_part and n not in node.said_no_status]
     if say and silent:

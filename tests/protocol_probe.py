@@ -19,7 +19,8 @@ from std_msgs.msg import String
 
 from maglev_msgs.msg import SensorBlock
 from maglev_ros.nodes._common import QOS_STREAM, run_node
-from maglev_ros.nodes._lifecycle import QOS_EVENTS, TOPIC_REPLAY_EVENTS, NodeLifecycle, ReplayEvent
+from maglev_ros.nodes._lifecycle import (FINISHED, QOS_EVENTS, RECORDING_END, RECORDING_START, TOPIC_REPLAY_EVENTS,
+                                         NodeLifecycle, ReplayEvent)
 
 
 class Probe(Node):
@@ -48,9 +49,15 @@ class Probe(Node):
 
     def _on_event(self, msg) -> None:
         ev = ReplayEvent.from_json(msg.data)
-        self._log(what="event", event=ev.event, index=ev.index, messages=ev.messages)
+        if not hasattr(self, "lifecycle") or ev.event == FINISHED:   # else logged by the hooks, in order
+            self._log(what="event", event=ev.event, index=ev.index, messages=ev.messages)
+
+    def on_recording_start(self, index: int) -> None:
+        self._log(what="event", event=RECORDING_START, index=index, messages={})
 
     def on_recording_end(self, index: int) -> None:
+        ev = next(e for e in self.lifecycle.events_seen if e.event == RECORDING_END and e.index == index)
+        self._log(what="event", event=RECORDING_END, index=index, messages=ev.messages)
         # the recording's blocks all came before its end (the replay announces it once they are taken)
         blocks, self.blocks = self.blocks, 0
 

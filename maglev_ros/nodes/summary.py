@@ -203,7 +203,18 @@ class SummaryNode(Node):
         self.recordings.append({"index": index, "bag": ev.bag if ev else "",
                                 "published": dict(ev.messages) if ev else {}, "received": self._received})
         self._received = {}
-        for st in self.stats.values():          # the next recording's time starts again
+        self._new_segments(inputs=True)
+
+    def on_recording_start(self, index: int) -> None:
+        """NodeLifecycle's hook: the nodes' results of the last recording came before (they said done)."""
+        self._new_segments(inputs=False)
+
+    def _new_segments(self, inputs: bool) -> None:
+        """The next recording's time starts again: its stamps are checked for order among themselves.
+        The recording's own messages end before its end event, the nodes' results before the next start."""
+        for topic, st in self.stats.items():
+            if topic.startswith("/testline/") != inputs:
+                continue
             seg = st["_segment"]
             if seg["first"] is not None:
                 st["span_s"] += seg["last"] - seg["first"]

@@ -24,6 +24,9 @@ class NodeSpec:
     runs_until_stopped: bool = False
     # watches the graph (the live view): the replay does not wait for it, nor for its results
     observer: bool = False
+    # ends by itself once the replay has finished (the demo's summary): the launcher waits for it
+    # before stopping the others
+    finishes: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {
@@ -101,12 +104,15 @@ LAUNCH_ARGUMENTS = (
     ("use_sim_time", "false", "nodes run on the replay's /clock (the replay itself on wall time)"),
     ("out", "out/monitor", "output directory: the updater's parameter history goes there"),
     ("history", "", "the updater's parameter history (default OUT/twin_parameters.jsonl)"),
-    ("linger_s", "30.0", "after a finite replay ends, the replay (and our launcher: the graph) "
-                         "stays this long"),
+    ("linger_s", "2.0", "extra time the replay (and our launcher: the graph) stays after its end, "
+                        "which comes once every node has published the last recording's results"),
+    ("results_timeout_s", "900.0", "after each recording, wait at most this long for the nodes' results "
+                                   "(the live diagnosis of a pass takes minutes on a busy machine)"),
 )
 # the replay's start-up gating in a launched graph: every other node up, a subscriber on every
-# data topic, each at most this long (process start-up and imports take seconds on a loaded machine)
-WAIT_TIMEOUT_S = 60.0
+# data topic, each at most this long (process start-up, imports and kernel compilation take a while
+# on a loaded machine)
+WAIT_TIMEOUT_S = 300.0
 _NAMESPACE = re.compile(r"^(/[A-Za-z][A-Za-z0-9_]*)+$")
 
 
@@ -146,7 +152,8 @@ def launch_overrides(rate: float = 1.0, fast: bool = False, out: str = "out/moni
 
 def node_launches(graph_name: str, bag: str | None = None, overrides: dict | None = None,
                   params_file: str | None = None, namespace: str = "", use_sim_time: bool = False,
-                  linger_s: float = 30.0, extra=()) -> list[NodeLaunch]:
+                  linger_s: float = 2.0, extra=(), bags: list[str] | None = None,
+                  results_timeout_s: float | None = None) -> list[NodeLaunch]:
     """What every node of ``graph_name`` (plus ``extra`` NodeSpecs) gets in a launch.
 
     The replay (only with a bag) starts when every other node of the graph is up and every data
@@ -155,17 +162,20 @@ def node_launches(graph_name: str, bag: str | None = None, overrides: dict | Non
     node but the replay on /clock; ``overrides`` ({node: {param: value}}) come last."""
     overrides = overrides or {}
     ns = check_namespace(namespace)
-    specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
+    bags = list(bags or ([bag] if bag else []))
+    specs = [s for s in list(graph(graph_name)) + list(extra) if bags or not s.needs_bag]
     others = [s.name for s in specs if not s.needs_bag and not s.observer]
     remaps = (("/clock", f"{ns}/clock"),) if ns else ()
     out = []
     for spec in specs:
         params = dict(spec.params)
         if spec.needs_bag:
-            params["bag"] = os.path.abspath(bag)
+            params["bags"] = [os.path.abspath(b) for b in bags]
             # [""]: no node to wait for (observers only); an empty list has no ROS parameter type
             params.update({"wait_nodes": others or [""], "wait_subscribers": 1, "wait_timeout_s": WAIT_TIMEOUT_S,
                            "linger_s": float(linger_s)})
+            if results_timeout_s is not None:
+                params["results_timeout_s"] = float(results_timeout_s)
         elif use_sim_time:
             params["use_sim_time"] = True
         params.update(overrides.get(spec.name, {}))

@@ -35,7 +35,7 @@ def test_replay_waits_for_the_graph_and_every_message_arrives(tmp_path, monkeypa
     assert code == 0, log.getvalue()
     with BagReader(BAG) as r:
         expected = {t: i.count for t, i in r.topics.items()}
-    flow = json.loads(out.read_text())
+    flow = json.loads(out.read_text())["topics"]
     got = {t: flow.get(t, {}).get("messages", 0) for t in expected}
     assert got == expected, log.getvalue()
     assert "starting anyway" not in log.getvalue()

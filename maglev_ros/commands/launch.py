@@ -18,7 +18,9 @@ def add_arguments(p) -> None:
     from maglev_ros.launch_graph import LAUNCH_ARGUMENTS
     default = {name: value for name, value, _ in LAUNCH_ARGUMENTS}    # the launch file's defaults
     p.add_argument("graph", help="graph name: monitor")
-    p.add_argument("--bag", help="replay this bag through the graph")
+    p.add_argument("--bag", nargs="+", metavar="BAG",
+                   help="replay this bag through the graph (several: one after the other, each with "
+                        "its results before the next)")
     p.add_argument("--rate", type=float, default=float(default["rate"]), help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
@@ -49,24 +51,30 @@ def add_arguments(p) -> None:
     p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
                    help="address the live view listens on (default 127.0.0.1; 0.0.0.0 serves other machines)")
     p.add_argument("--linger", type=float, default=float(default["linger_s"]), metavar="S",
-                   help="after a finite replay ends, keep the graph running this long so the twin, "
-                        "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
-                        "layer may take minutes on a busy machine)")
+                   help="extra time the graph keeps running after the replay's end, which comes once "
+                        "every node has published the last recording's results (default 2 s)")
+    p.add_argument("--results-timeout", type=float, default=float(default["results_timeout_s"]), metavar="S",
+                   help="after each recording, wait at most this long for the nodes' results (the live "
+                        "diagnosis of a pass takes minutes on a busy machine; default 900 s)")
 
 
 def launch_kwargs(args) -> dict:
     """The keyword arguments of ``launcher.launch`` for these options (checked; no directory made)."""
     from maglev_ros.launch_graph import check_namespace, launch_overrides
     from maglev_ros.replay_timing import check_rate
-    if args.bag and not os.path.exists(args.bag):
-        raise UserError(f"{args.bag}: no such bag")
+    for bag in args.bag or []:
+        if not os.path.exists(bag):
+            raise UserError(f"{bag}: no such bag")
     if args.params_file and not os.path.exists(args.params_file):
         raise UserError(f"{args.params_file}: no such parameters file")
     if not args.fast:
         check_rate(args.rate)
     if args.linger < 0:
         raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
-    return dict(bag=args.bag, params_file=args.params_file, linger_s=args.linger,
+    if args.results_timeout < 0:
+        raise UserError(f"--results-timeout: expected seconds >= 0, got {args.results_timeout}")
+    return dict(bags=args.bag, params_file=args.params_file, linger_s=args.linger,
+                results_timeout_s=args.results_timeout,
                 namespace=check_namespace(args.namespace), use_sim_time=bool(args.use_sim_time),
                 overrides=launch_overrides(rate=args.rate, fast=args.fast, out=args.out, history=args.history))
 

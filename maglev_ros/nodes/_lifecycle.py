@@ -44,6 +44,11 @@ QOS_STATUS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# a reader of every node's status: KEEP_LAST is per topic, not per writer, so a depth-1 reader
+# keeps only one of the statuses the nodes' writers hand a late joiner at once
+QOS_STATUS_READER = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
+                               reliability=ReliabilityPolicy.RELIABLE,
+                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
 POLL_S = 0.2
 
 
@@ -158,7 +163,7 @@ class GraphWaiter:
         self.node = node
         self.statuses: dict[str, NodeStatus] = {}
         self._pub = node.create_publisher(String, TOPIC_REPLAY_EVENTS, QOS_EVENTS)
-        node.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUS)
+        node.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUS_READER)
 
     def _on_status(self, msg) -> None:
         st = NodeStatus.from_json(msg.data)

@@ -28,7 +28,8 @@ def _nodes(context, *args, **kwargs):
     nodes = []
     for nl in node_launches("monitor", bag=arg("bag") or None, overrides=overrides,
                             params_file=arg("params_file") or None, namespace=arg("namespace"),
-                            use_sim_time=flag("use_sim_time"), linger_s=float(arg("linger_s"))):
+                            use_sim_time=flag("use_sim_time"), linger_s=float(arg("linger_s")),
+                            results_timeout_s=float(arg("results_timeout_s"))):
         # a params file first, then the computed parameters (they win, as -p after --params-file)
         parameters = ([nl.params_file] if nl.params_file else []) + [nl.params]
         nodes.append(Node(package="maglev_ros", executable=nl.name, name=nl.name,

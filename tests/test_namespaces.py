@@ -90,7 +90,7 @@ def test_two_namespaced_graphs_run_side_by_side_without_crosstalk(tmp_path, monk
         spy.destroy_node()
     for ns in LINES:
         assert codes.get(ns) == 0, logs[ns].getvalue()
-        flow = json.loads(flows[ns].read_text())
+        flow = json.loads(flows[ns].read_text())["topics"]
         lo, hi = expected[ns]["span_s"]
         for topic in (VEHICLE_ACCEL, VEHICLE_GAP, VEHICLE_POSITION, METADATA_TOPIC):
             assert flow[topic]["messages"] == expected[ns][topic], (ns, topic, logs[ns].getvalue())

@@ -160,7 +160,8 @@ class SummaryNode(Node):
             return
         if topic not in self.stats:
             self.stats[topic] = {"type": msgtype, "messages": 0, "samples": 0, "span_s": 0.0,
-                                 "out_of_order": 0, "repeated": 0, "digest": None}
+                                 "out_of_order": 0, "repeated": 0, "digest": None,
+                                 "first_stamp_s": None, "last_stamp_s": None}
             self._digests[topic] = []
         else:
             self.destroy_subscription(self._subs.pop(topic))
@@ -204,6 +205,8 @@ class SummaryNode(Node):
                 if seg["first"] is None:
                     seg["first"] = t
                 seg["last"] = t if seg["last"] is None else max(t, seg["last"])
+                st["first_stamp_s"] = t if st.get("first_stamp_s") is None else min(t, st["first_stamp_s"])
+                st["last_stamp_s"] = t if st.get("last_stamp_s") is None else max(t, st["last_stamp_s"])
             if hasattr(msg, "channels") and hasattr(msg, "data") and len(msg.channels):
                 st["samples"] += len(msg.data) // len(msg.channels)
         return on_msg

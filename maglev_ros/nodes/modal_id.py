@@ -1,29 +1,56 @@
-"""Node ``modal_id``: guideway modes identified online from /testline/guideway/accel.
+"""Node ``modal_id``: guideway modes from /testline/guideway/accel, during the stream and per recording.
 
-Sliding-window SSI-cov (``maglev_ros.modal.tracking.OnlineModalID``) with modes tracked across
-updates (stable ids, "new"/"lost"); publishes maglev_msgs/ModalEstimate on /maglev/modes after
-every update (every ``update_s`` of stream time once ``window_s`` has filled).
+During the stream: sliding-window SSI-cov (``maglev_ros.modal.tracking.OnlineModalID``) with modes
+tracked across updates (stable ids, "new"/"tracked"/"lost"); a ModalEstimate on /maglev/modes
+(method ``ssi-cov online``, window_s the window) every ``update_s`` of stream time once
+``window_s`` has filled. Its settings follow the stream as the ``modes`` verb's follow a
+recording (bands, decimation, block rows and orders by ``maglev_ros.modal.bands.plan_bands`` on a
+record of ``window_s`` at the stream's rate); the window, unless given, is the shortest record on
+which those rules look down to ``fmin_hz`` (1 Hz: 40 s). The tracker restarts with each recording.
 
-Parameters (also from YAML: ``--params-file config/modal_id.yaml``): window_s (120), update_s
-(2), decimate_to_hz (500; 0 = none), block_rows (40), max_order (60), order_step (4), fmin_hz
-(5), fmax_hz (150), n_blocks (6), freq_tol (0.03), mac_min (0.8), max_misses (3),
-min_confirm (2), channels (string[]; default: every vertical guideway accelerometer).
+At the end of each recording (the replay's ``recording_end``, :mod:`maglev_ros.nodes._lifecycle`;
+on a live stream, metadata that differs from the current): the recording's guideway accelerations
+(and, for a pass's free decay, the vehicle position), kept as received, are identified by the
+``modes`` verb's own function (``commands.modes.identify_modes`` on a
+:class:`~maglev_ros.bag_memory.MemoryBag`, the verb's defaults) on a worker thread, and published as
+one ModalEstimate: method ``ssi-cov whole recording`` (``..., free decay`` for a pass), window_s the
+data used, stamp the recording's last sample, modes with the verb's ids and status
+``identified``: the same modes as ``maglev-ros modes BAG`` on the replayed bag.
+
+Parameters (also from YAML: ``--params-file config/modal_id.yaml``); 0 = chosen from the stream:
+window_s (0), update_s (2), decimate_to_hz (0; a rate: one band there), block_rows (0),
+max_order (0), order_step (4), fmin_hz (0), fmax_hz (0), n_blocks (0), freq_tol (0.03), mac_min
+(0.8), max_misses (3), min_confirm (2), channels (string[]; default: every vertical guideway
+accelerometer), recording_modes (true: the whole-recording identification at each end).
 """
 from __future__ import annotations
 
+import math
+import queue
 import sys
+import threading
 from dataclasses import fields
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, ModalMode, SensorBlock
-from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, parse_metadata
+from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
-from maglev_ros.nodes._common import BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, block_from_msg, qos_for, rel, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_MODES = "/maglev/modes"
+METHOD_ONLINE = "ssi-cov online"
+METHOD_RECORDING = "ssi-cov whole recording"
+STATUS_RECORDING = "identified"
+# upper bound on waiting for reliable subscribers to acknowledge a recording's result
+ACK_TIMEOUT_S = 30.0
+# settings whose 0 means "chosen from the stream" (None in OnlineModalConfig)
+AUTO = ("window_s", "decimate_to_hz", "block_rows", "max_order", "fmin_hz", "fmax_hz", "n_blocks")
+INTS = ("block_rows", "max_order", "order_step", "n_blocks", "max_misses", "min_confirm")
 
 
 class ModalIdNode(Node):
@@ -32,21 +59,42 @@ class ModalIdNode(Node):
         defaults = OnlineModalConfig()
         values = {}
         for f in fields(OnlineModalConfig):
-            default = getattr(defaults, f.name)
-            v = self.declare_parameter(f.name, 0.0 if default is None else default).value
-            values[f.name] = (None if f.name == "decimate_to_hz" and not v else v)
+            d = getattr(defaults, f.name)
+            d = 0 if d is None else d
+            d = int(d) if f.name in INTS else float(d)
+            v = self.declare_parameter(f.name, d).value
+            values[f.name] = None if (f.name in AUTO and not v) else v
         self.core = OnlineModalID(OnlineModalConfig(**values))
         self.wanted = [c for c in self.declare_parameter("channels", [""]).value if c]
-        self.pub = self.create_publisher(ModalEstimate, TOPIC_MODES, qos_for(TOPIC_MODES))
+        self.wanted_given = bool(self.wanted)
+        self.recording_modes = bool(self.declare_parameter("recording_modes", True).value)
+        self.pub = self.create_publisher(ModalEstimate, rel(TOPIC_MODES), qos_for(TOPIC_MODES))
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
-        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
-        self.create_subscription(SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block,
+        from maglev_ros.bag_memory import RecordingCollector
+        self.collector = RecordingCollector((TOPIC_GUIDEWAY_ACCEL, TOPIC_VEHICLE_POSITION),
+                                            name=f"{self.get_fully_qualified_name()} recording")
+        self.lock = threading.Lock()               # the collector: fed by callbacks, emptied at an end
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self.n_jobs = 0                            # recordings handed over and not yet published
+        self.create_subscription(String, rel(TOPIC_METADATA), self._on_metadata, qos_for(TOPIC_METADATA))
+        self.create_subscription(SensorBlock, rel(TOPIC_GUIDEWAY_ACCEL), self._on_block,
                                  qos_for(TOPIC_GUIDEWAY_ACCEL))
+        if self.recording_modes:   # a pass's free decay starts where the vehicle has left the span
+            self.create_subscription(SensorBlock, rel(TOPIC_VEHICLE_POSITION), self._on_position,
+                                     qos_for(TOPIC_VEHICLE_POSITION))
+            threading.Thread(target=self._work, daemon=True).start()
+        self.lifecycle = NodeLifecycle(self, ready=True, diagnostics=self.diagnostics)
 
+    # ------------------------------------------------------------------ the stream
     def _on_metadata(self, msg) -> None:
         self.gate.new_stream()
-        if self.wanted:
+        with self.lock:
+            # a live stream has no recording_end: new metadata ends the recording
+            done = self.collector.set_metadata(msg.data, metadata_ends=not self.lifecycle.events_seen)
+        if done is not None:
+            self._recording_ended(done)
+        if self.wanted_given:
             return
         try:
             md = parse_metadata(msg.data, TOPIC_METADATA)
@@ -56,10 +104,18 @@ class ModalIdNode(Node):
         self.wanted = [sid for sid, s in md.sensors_on_topic(TOPIC_GUIDEWAY_ACCEL).items()
                        if s.direction in (None, "vertical")]
 
+    def _on_position(self, msg) -> None:
+        if self.gate.block(msg, TOPIC_VEHICLE_POSITION) is not None:
+            with self.lock:
+                self.collector.add(TOPIC_VEHICLE_POSITION, block_from_msg(msg))
+
     def _on_block(self, msg) -> None:
         block = self.gate.block(msg, TOPIC_GUIDEWAY_ACCEL)
         if block is None:
             return
+        if self.recording_modes:   # as received: the verb's reader converts units itself
+            with self.lock:
+                self.collector.add(TOPIC_GUIDEWAY_ACCEL, block_from_msg(msg))
         cols = list(range(len(block.channels)))
         if self.wanted:
             cols = [j for j, c in enumerate(block.channels) if c in self.wanted] or cols
@@ -77,21 +133,11 @@ class ModalIdNode(Node):
         out = ModalEstimate()
         stamp_to_msg(stamp_ns, out.header)
         out.header.frame_id = "guideway"
-        out.method = "ssi-cov"
-        out.window_s = float(self.core.config.window_s)
+        out.method = METHOD_ONLINE
+        out.window_s = float(self.core.window_s)
         new = {e.id for e in update.events if e.kind == "new"}
         for m in update.modes:
-            mm = ModalMode()
-            mm.id = m.id
-            mm.status = "new" if m.id in new else "tracked"
-            mm.frequency_hz = float(m.frequency_hz)
-            mm.damping_ratio = float(m.damping_ratio)
-            mm.std_frequency_hz = float(m.std_frequency_hz)
-            mm.std_damping_ratio = float(m.std_damping_ratio)
-            mm.mpc = float(m.mpc)
-            mm.channels = list(m.mode_shape)
-            mm.mode_shape = [float(v) for v in m.mode_shape.values()]
-            out.modes.append(mm)
+            out.modes.append(_mode_msg(m.id, "new" if m.id in new else "tracked", m))
         for e in update.events:
             if e.kind == "lost":
                 mm = ModalMode()
@@ -99,6 +145,87 @@ class ModalIdNode(Node):
                 mm.damping_ratio = mm.std_frequency_hz = mm.std_damping_ratio = mm.mpc = float("nan")
                 out.modes.append(mm)
         return out
+
+    # ------------------------------------------------------------------ recording ends
+    def on_recording_end(self, index: int) -> None:
+        """The replay's recording ``index`` has ended: identify it whole (worker thread)."""
+        ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
+        with self.lock:
+            bag = self._finish(ev.bag if ev is not None and ev.bag else None)
+        if bag is not None:
+            self._recording_ended(bag)
+        else:
+            self.core.reset()
+
+    def _finish(self, source):
+        from maglev_ros.errors import ContractError
+        try:
+            return self.collector.finish(source)
+        except ContractError as exc:
+            self.get_logger().error(f"recording not identified: {exc}")
+            return None
+
+    def _recording_ended(self, bag) -> None:
+        self.core.reset()                # the next recording is tracked afresh
+        if not self.recording_modes or not bag.has(TOPIC_GUIDEWAY_ACCEL):
+            return
+        with self.lock:
+            self.n_jobs += 1
+        self.jobs.put(bag)
+
+    def busy(self) -> bool:
+        return self.n_jobs > 0
+
+    def _work(self) -> None:
+        while True:
+            bag = self.jobs.get()
+            try:
+                self._identify(bag)
+            except Exception as exc:  # noqa: BLE001  (a recording the verb refuses must not end the node)
+                self.get_logger().error(f"{bag.path}: whole-recording modes not identified: {exc}")
+            finally:
+                with self.lock:
+                    self.n_jobs -= 1
+
+    def _identify(self, bag) -> None:
+        from maglev_ros.commands.modes import identify_modes
+        out = identify_modes(bag)
+        res, info = out.result, out.info
+        acc = bag.read_topic(TOPIC_GUIDEWAY_ACCEL)
+        end_s = float(acc.time_s[-1]) if acc.n_samples else 0.0
+        msg = ModalEstimate()
+        stamp_to_msg(int(round(end_s * 1e9)), msg.header)
+        msg.header.frame_id = "guideway"
+        w = info.get("free_decay_window")
+        msg.method = METHOD_RECORDING + (", free decay" if w else "")
+        msg.window_s = float(w["stop_s"] - w["start_s"]) if w else info["n_samples"] / info["fs_hz"]
+        for m in res.modes:
+            msg.modes.append(_mode_msg(m.id, STATUS_RECORDING, m))
+        self.pub.publish(msg)
+        # done (maglev/status) only once reliable subscribers hold the result
+        self.pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
+        self.get_logger().info(
+            f"{bag.path}: whole-recording modes ({info['run_kind']}, as `maglev-ros modes`): "
+            + (", ".join(f"{m.frequency_hz:.3f} Hz ({100 * m.damping_ratio:.2f} %)" for m in res.modes)
+               or "none stable"))
+
+
+def _mode_msg(mode_id: str, status: str, m) -> ModalMode:
+    """A ModalMode from a tracked or identified mode (frequency, damping, stds, MPC, shape dict)."""
+    mm = ModalMode()
+    mm.id, mm.status = str(mode_id), status
+    mm.frequency_hz = float(m.frequency_hz)
+    mm.damping_ratio = float(m.damping_ratio)
+    mm.std_frequency_hz = _finite(m.std_frequency_hz)
+    mm.std_damping_ratio = _finite(m.std_damping_ratio)
+    mm.mpc = _finite(m.mpc)
+    mm.channels = [str(c) for c in m.mode_shape]
+    mm.mode_shape = [float(v) for v in m.mode_shape.values()]
+    return mm
+
+
+def _finite(x) -> float:
+    return float(x) if x is not None and math.isfinite(float(x)) else float("nan")
 
 
 def main(args=None) -> int:

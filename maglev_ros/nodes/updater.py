@@ -21,25 +21,50 @@ never judged; why the magnet layer waits is logged once per reason.
 The magnet layer takes tens of seconds; it runs in a worker thread on copies of the buffered
 window and the current parameters, without holding the node's lock (the node keeps receiving
 and updating the guideway meanwhile); only accepting and storing the result takes the lock.
+These moving-window updates give the twin better parameters while a long recording still runs;
+they see a window, not the recording, so they are not what the recording says.
+
+At the end of each recording (the replay's ``recording_end``, :mod:`maglev_ros.nodes._lifecycle`;
+on a live stream, metadata that differs from the current) the node runs the pipeline of
+``maglev-ros update`` (``updating.pipeline.update_from_bags``, the verb's settings) on the
+recordings as it received them (:class:`~maglev_ros.bag_memory.MemoryBag`, read by the verb's
+own readers): an ambient recording alone (``update --ambient A``: E, rho, kb; it is kept as the
+line's ambient), a pass with the last ambient recording of its line (``update --ambient A --pass
+P``: every parameter). That runs on a worker thread (``busy()`` meanwhile; online results of the
+ended recording are dropped), and its ``maglev-params/1`` parameters are stored in the history
+and published as the next revision: the verb's ``params.json`` values. Its settings are
+parameters named after the verb's options: ``end_max_modes`` (4), ``end_samples`` (60),
+``end_polish_evals`` (8), ``end_swarm`` (int[] PARTICLES ITERATIONS; [] the verb's default),
+``end_max_window_s`` (0: all), ``end_seed`` (0); ``recording_update`` (true) turns it off.
 """
 from __future__ import annotations
 
 import math
+import queue
 import sys
 import threading
 
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
-from maglev_ros.contract import parse_metadata
-from maglev_ros.nodes._common import QOS_LATCHED, QOS_STREAM, BlockGate, qos_for, run_node
+from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, parse_metadata
+from maglev_ros.nodes._common import (QOS_LATCHED, QOS_STREAM, BlockGate, block_from_msg, qos_for, rel,
+                                      run_node)
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_PARAMETERS = "/maglev/twin/parameters"
 TOPIC_MODES = "/maglev/modes"
 TOPIC_RESIDUAL = "/maglev/twin/residual/vehicle_accel"
 VEHICLE_TOPICS = ("/testline/vehicle/accel", "/testline/vehicle/gap", "/testline/vehicle/position")
+# what the verb reads: the ambient's guideway accelerations, a pass's vehicle streams and displacement
+RECORDED_TOPICS = (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, *VEHICLE_TOPICS)
+# the modal_id node's whole-recording estimate: this node's own recording-end update covers it
+WHOLE_RECORDING = "whole recording"
+# upper bound on waiting for reliable subscribers to acknowledge a recording's result
+ACK_TIMEOUT_S = 30.0
 
 
 class UpdaterNode(Node):
@@ -55,16 +80,36 @@ class UpdaterNode(Node):
             max_lag_s=float(p("max_lag_s", 10.0).value), min_speed_mps=float(p("min_speed_mps", 0.1).value))
         self.n_logged = 0
         self.magnet_enabled = bool(p("magnet_layer", True).value)
-        self.pub = self.create_publisher(TwinParameters, TOPIC_PARAMETERS, QOS_LATCHED)
+        self.recording_update = bool(p("recording_update", True).value)
+        swarm = [int(x) for x in p("end_swarm", [0]).value if int(x) > 0]
+        self.end_settings = {"max_modes": int(p("end_max_modes", 4).value),
+                             "samples": int(p("end_samples", 60).value),
+                             "polish_evals": int(p("end_polish_evals", 8).value),
+                             "swarm": swarm[:2] if len(swarm) >= 2 else None,
+                             "max_window_s": float(p("end_max_window_s", 0.0).value) or None,
+                             "seed": int(p("end_seed", 0).value)}
+        self.pub = self.create_publisher(TwinParameters, rel(TOPIC_PARAMETERS), QOS_LATCHED)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         self.lock = threading.Lock()
         self.worker: threading.Thread | None = None
-        self.create_subscription(String, "/testline/metadata", self._on_metadata, qos_for("/testline/metadata"))
-        self.create_subscription(ModalEstimate, TOPIC_MODES, self._on_modes, QOS_STREAM)
-        self.create_subscription(SensorBlock, TOPIC_RESIDUAL, self._on_residual, QOS_STREAM)
+        from maglev_ros.bag_memory import RecordingCollector
+        self.collector = RecordingCollector(RECORDED_TOPICS, name=f"{self.get_fully_qualified_name()} recording")
+        self.ambient = None               # the line's last ambient recording (MemoryBag)
+        self.closed = False               # the recording has ended: its online results are dropped
+        self.end_jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self.n_end_jobs = 0               # recordings handed to the end worker, not yet published
+        self.end_worker: threading.Thread | None = None
+        self.create_subscription(String, rel("/testline/metadata"), self._on_metadata, qos_for("/testline/metadata"))
+        self.create_subscription(ModalEstimate, rel(TOPIC_MODES), self._on_modes, QOS_STREAM)
+        self.create_subscription(SensorBlock, rel(TOPIC_RESIDUAL), self._on_residual, QOS_STREAM)
         for t in VEHICLE_TOPICS:
-            self.create_subscription(SensorBlock, t, self._vehicle(t), QOS_STREAM)
+            self.create_subscription(SensorBlock, rel(t), self._vehicle(t), QOS_STREAM)
+        if self.recording_update:
+            for t in (TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP):
+                self.create_subscription(SensorBlock, rel(t), self._recorded(t), QOS_STREAM)
+            self.end_worker = threading.Thread(target=self._end_work, daemon=True)
+            self.end_worker.start()
         self.line: str | None = None      # line key of the metadata the history was restored for
         if self.core.history.path is None:
             self.get_logger().warning("history_path not set: accepted parameters are kept in memory only")
@@ -72,6 +117,7 @@ class UpdaterNode(Node):
             for w in self.core.history.open_writer():
                 self.get_logger().warning(w)
         self.n_warned = 0
+        self.lifecycle = NodeLifecycle(self, ready=True, diagnostics=self.diagnostics)
 
     def _drain_log(self) -> None:
         """Print the core's new log lines (call with the lock held)."""
@@ -99,6 +145,13 @@ class UpdaterNode(Node):
         from maglev_ros.errors import UserError
         from maglev_ros.updating.history import line_key
         self.gate.new_stream()
+        with self.lock:
+            # a live stream has no recording_end: new metadata ends the recording
+            done = self.collector.set_metadata(msg.data, metadata_ends=not self.lifecycle.events_seen)
+        if done is not None:
+            self._recording_ended(done)
+        with self.lock:
+            self.closed = False            # a new recording: its online results count again
         try:
             with self.lock:
                 self.core.set_metadata(parse_metadata(msg.data, "/testline/metadata").raw)
@@ -119,9 +172,13 @@ class UpdaterNode(Node):
 
     def _on_modes(self, msg) -> None:
         from maglev_ros.errors import UserError
+        if WHOLE_RECORDING in msg.method and self.recording_update:
+            return                                     # the recording-end update identifies them itself
         stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         try:
             with self.lock:
+                if self.closed:
+                    return
                 pub = self.core.on_modes(list(msg.modes), stamp)
                 self._drain_log()
         except UserError as exc:
@@ -138,6 +195,16 @@ class UpdaterNode(Node):
                 return
             with self.lock:
                 self.core.on_vehicle_block(topic, blk)
+                if self.recording_update:   # as received: the verb's reader converts units itself
+                    self.collector.add(topic, block_from_msg(msg))
+        return cb
+
+    def _recorded(self, topic: str):
+        """Guideway streams: only kept for the recording-end update."""
+        def cb(msg) -> None:
+            if self.gate.block(msg, topic) is not None:
+                with self.lock:
+                    self.collector.add(topic, block_from_msg(msg))
         return cb
 
     def _on_residual(self, msg) -> None:
@@ -145,7 +212,7 @@ class UpdaterNode(Node):
         if blk is None or not self.magnet_enabled:
             return
         with self.lock:
-            if self.worker is not None and self.worker.is_alive():
+            if self.closed or (self.worker is not None and self.worker.is_alive()):
                 return
             job = self.core.take_magnet_job(blk)       # copies of the window's streams + current parameters
             self._drain_log()
@@ -161,6 +228,9 @@ class UpdaterNode(Node):
                 self.get_logger().error(f"magnet layer: {exc}")
                 return
             with self.lock:                            # short: accept + store in the history
+                if self.closed:                        # its recording ended: the end update decides
+                    self.get_logger().info("magnet layer result of an ended recording dropped")
+                    return
                 pub = self.core.accept_magnet_update(result)
                 self._drain_log()
             if pub is not None:
@@ -171,21 +241,103 @@ class UpdaterNode(Node):
         self.worker.start()
 
 
+    # ------------------------------------------------------------------ recording ends
+    def on_recording_start(self, index: int) -> None:
+        with self.lock:
+            self.closed = False
+
+    def on_recording_end(self, index: int) -> None:
+        """The replay's recording ``index`` has ended: the verb's update on it (worker thread)."""
+        from maglev_ros.errors import ContractError
+        ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
+        with self.lock:
+            try:
+                bag = self.collector.finish(ev.bag if ev is not None and ev.bag else None)
+            except ContractError as exc:
+                self.get_logger().error(f"recording not used for the update: {exc}")
+                bag = None
+        if bag is not None:
+            self._recording_ended(bag)
+
+    def _recording_ended(self, bag) -> None:
+        from maglev_ros.updating.history import line_key
+        with self.lock:
+            self.closed = True
+            self.core.new_recording()
+        kind = bag.metadata.run_kind
+        if kind == "ambient":
+            if not bag.has(TOPIC_GUIDEWAY_ACCEL):
+                self.get_logger().warning(f"{bag.path}: ambient recording without {TOPIC_GUIDEWAY_ACCEL}: not used")
+                return
+            self.ambient = bag
+            job = (bag, [])
+        elif kind == "pass":
+            amb = self.ambient
+            if amb is None or line_key(amb.metadata.raw) != line_key(bag.metadata.raw):
+                self.get_logger().warning(
+                    f"{bag.path}: no ambient recording of this line received before the pass: the "
+                    f"recording-end update (maglev-ros update --ambient A --pass P) needs one; the "
+                    f"moving-window updates stand")
+                return
+            job = (amb, [bag])
+        else:
+            return
+        with self.lock:
+            self.n_end_jobs += 1
+        self.end_jobs.put(job)
+
+    def busy(self) -> bool:
+        return self.n_end_jobs > 0
+
+    def _end_work(self) -> None:
+        while True:
+            ambient, passes = self.end_jobs.get()
+            try:
+                self._end_update(ambient, passes)
+            except Exception as exc:  # noqa: BLE001  (a recording the pipeline refuses must not end the node)
+                self.get_logger().error(f"recording-end update of {(passes or [ambient])[0].path} failed: {exc}")
+            finally:
+                with self.lock:
+                    self.n_end_jobs -= 1
+
+    def _end_update(self, ambient, passes) -> None:
+        from maglev_ros.updating.pipeline import update_from_bags, update_layers
+        st = self.end_settings
+        w = self.worker                    # a moving-window layer still running: its result is dropped
+        if w is not None and w.is_alive():
+            w.join()
+        label = ", ".join(str(b.path) for b in (ambient, *passes))
+        self.get_logger().info(f"recording-end update on {label} (the maglev-ros update pipeline)")
+        gl, ml = update_layers(st["samples"], st["polish_evals"], st["swarm"], st["seed"])
+        up = update_from_bags(ambient, passes, max_modes=st["max_modes"], max_window_s=st["max_window_s"],
+                              guideway_layer=gl, magnet_layer=ml, log=self.get_logger().info)
+        data_used = {"kind": "recording end", "ambient": str(ambient.path),
+                     "passes": [str(b.path) for b in passes],
+                     "pipeline": "maglev_ros.updating.pipeline.update_from_bags", "settings": st}
+        with self.lock:
+            pub = self.core.accept_recording_update(up.document, data_used)
+            self._drain_log()
+        if pub is not None:
+            self._publish(pub)
+            # done (maglev/status) only once reliable subscribers hold the result
+            self.pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
+
     # the launcher waits 5 s after SIGINT before it kills a node
     SHUTDOWN_WAIT_S = 3.0
 
     def unfinished_work(self) -> bool:
-        """At shutdown: wait up to ``SHUTDOWN_WAIT_S`` for a running magnet layer; True if it is still
-        running (its result is then discarded: the process must end without the interpreter's
-        teardown, which aborted in the worker's native code, 'terminate called without an active
-        exception', when the demo's graph stopped while the layer ran)."""
+        """At shutdown: wait up to ``SHUTDOWN_WAIT_S`` for a running magnet layer or recording-end
+        update; True if one is still running (its result is then discarded: the process must end
+        without the interpreter's teardown, which aborted in the worker's native code, 'terminate
+        called without an active exception', when the demo's graph stopped while the layer ran)."""
         w = self.worker
-        if w is None or not w.is_alive():
+        if (w is None or not w.is_alive()) and not self.busy():
             return False
-        w.join(self.SHUTDOWN_WAIT_S)
-        if w.is_alive():
-            self.get_logger().warning("shutdown while the magnet layer is running: its result is discarded "
-                                      "(the parameter history holds every accepted update)")
+        if w is not None:
+            w.join(self.SHUTDOWN_WAIT_S)
+        if (w is not None and w.is_alive()) or self.busy():
+            self.get_logger().warning("shutdown while the magnet layer or a recording-end update is running: "
+                                      "its result is discarded (the parameter history holds every accepted update)")
             return True
         return False
 

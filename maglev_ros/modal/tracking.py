@@ -70,11 +70,13 @@ class StreamingSSI:
     """Sliding-window SSI-cov over a stream: ``push(block)`` returns the results produced.
 
     ``ssi`` holds the identification settings (its ``decimate_to_hz`` sets the decimation);
-    ``window_s`` window length, ``update_s`` stream time between results.
+    ``window_s`` window length, ``update_s`` stream time between results; ``min_window_s``
+    (default ``window_s``): the first result once this much has come, the window then grows
+    with the stream up to ``window_s`` and slides from there.
     """
 
     def __init__(self, ssi: SSICov, fs_hz: float, channels, window_s: float = 120.0,
-                 update_s: float = 2.0, exact_svd_every: int = 30):
+                 update_s: float = 2.0, exact_svd_every: int = 30, min_window_s: float | None = None):
         if fs_hz <= 0:
             raise UserError(f"fs_hz: expected a positive sampling rate, got {fs_hz!r}")
         if update_s <= 0 or window_s < update_s:
@@ -93,6 +95,7 @@ class StreamingSSI:
         # several bands at different decimations complete their chunks on the same input sample
         self.chunk_in = max(int(round(update_s * self.fs_in_hz)), 1)
         self.n_chunks = max(int(round(window_s / update_s)), 1)
+        self.min_chunks = min(max(int(round((min_window_s or window_s) / update_s)), 1), self.n_chunks)
         self._chunks_done = 0
         self._taken = 0                                    # decimated samples put into chunks
         self.window_s, self.update_s = float(window_s), float(update_s)
@@ -123,7 +126,7 @@ class StreamingSSI:
                 self._taken += take
                 self._chunks_done += 1
                 self._add_chunk(chunk)
-                if len(self._chunks) == self.n_chunks:
+                if len(self._chunks) >= self.min_chunks:
                     self.time_s = end_in / self.fs_in_hz
                     out.append(self._identify())
         return out
@@ -342,10 +345,10 @@ class ModeTracker:
         return TrackerUpdate(float(time_s), out, tuple(events))
 
 
-def default_window_s(fmin_hz: float | None = None) -> float:
-    """The online window when none is given: the shortest record on which the ``modes`` verb's
-    rules look down to ``fmin_hz`` (default: their lowest mode, 1 Hz): its longest lag, PERIODS
-    periods of fmin x 2, is LAG_FRACTION of the window (40 s for 1 Hz)."""
+def min_window_s(fmin_hz: float | None = None) -> float:
+    """The shortest record on which the ``modes`` verb's rules look down to ``fmin_hz`` (default:
+    their lowest mode, 1 Hz): its longest lag, PERIODS periods of fmin x 2, is LAG_FRACTION of
+    the record (40 s for 1 Hz)."""
     from maglev_ros.modal.bands import FMIN_DEFAULT_HZ, LAG_FRACTION, PERIODS
     return 2.0 * PERIODS / (LAG_FRACTION * (fmin_hz or FMIN_DEFAULT_HZ))
 
@@ -354,11 +357,16 @@ def default_window_s(fmin_hz: float | None = None) -> float:
 class OnlineModalConfig:
     """Settings of the online identification (the ``modal_id`` node's parameters). None: chosen
     from the stream as the ``modes`` verb chooses them from a recording
-    (:func:`maglev_ros.modal.bands.plan_bands` on a record of ``window_s`` at the stream's rate:
-    fmax 0.4 x the rate, bands of at most a decade each decimated for its top frequency, block
-    rows of 2 periods of a band's lowest frequency, orders from the Hankel size);
-    ``window_s`` None: :func:`default_window_s`. ``decimate_to_hz`` given: one band at that rate."""
+    (:func:`maglev_ros.modal.bands.plan_bands` on the shortest window identified, at the
+    stream's rate: fmax 0.4 x the rate, bands of at most a decade each decimated for its top
+    frequency, block rows of 2 periods of a band's lowest frequency, orders from the Hankel size).
+    ``decimate_to_hz`` given: one band at that rate.
+
+    The window: ``window_s`` given, the last ``window_s`` of stream; None, the recording so far,
+    from :func:`min_window_s` (the first estimate) up to ``max_window_s`` (the tracking horizon:
+    beyond it the window slides, so slow changes are followed and memory stays bounded)."""
     window_s: float | None = None
+    max_window_s: float = 300.0
     update_s: float = 2.0
     decimate_to_hz: float | None = None
     block_rows: int | None = None
@@ -372,15 +380,21 @@ class OnlineModalConfig:
     max_misses: int = 3
     min_confirm: int = 2
 
-    def window_for(self) -> float:
-        return float(self.window_s) if self.window_s else default_window_s(self.fmin_hz)
+    @property
+    def first_window_s(self) -> float:
+        """The stream time of the first estimate (the window the settings are planned for)."""
+        return float(self.window_s) if self.window_s else min_window_s(self.fmin_hz)
+
+    @property
+    def longest_window_s(self) -> float:
+        return float(self.window_s) if self.window_s else max(float(self.max_window_s), self.first_window_s)
 
 
 class OnlineModalID:
     """Blocks of the guideway acceleration stream in, tracked modes out (no ROS).
 
     ``push(stamp_s, data, channels, fs_hz)`` feeds one block (n, c); it returns the tracker
-    updates produced (one per ``update_s`` of stream once ``window_s`` has filled). Each band of
+    updates produced (one per ``update_s`` of stream once the first window has filled). Each band of
     the plan (``plan``, set from the first block's rate) runs its own :class:`StreamingSSI`;
     their chunks end on the same input samples, so each update merges the bands' results of the
     same window (:func:`maglev_ros.modal.bands.merge_band_results`, as the verb merges them). A
@@ -404,13 +418,16 @@ class OnlineModalID:
 
     @property
     def window_s(self) -> float:
-        return self.config.window_for()
+        """The window of the last estimate [s] (the first window before any)."""
+        st = self.streams[0] if self.streams else None
+        if st is None or not st._chunks:
+            return self.config.first_window_s
+        return len(st._chunks) * st.chunk_in / st.fs_in_hz
 
     def _start(self, channels, fs_hz: float) -> None:
         from maglev_ros.modal.bands import plan_bands
         c = self.config
-        window_s = self.window_s
-        n = int(round(window_s * fs_hz))
+        n = int(round(c.first_window_s * fs_hz))
         self.plan = plan_bands(fs_hz, n, len(channels), stationary=True, fmin_hz=c.fmin_hz,
                                fmax_hz=c.fmax_hz, block_rows=c.block_rows, max_order=c.max_order,
                                decimate_to_hz=c.decimate_to_hz)
@@ -421,7 +438,8 @@ class OnlineModalID:
                          decimate_to_hz=fs_hz / b.decimation if b.decimation > 1 else None,
                          freq_range_hz=b.search_hz, uncertainty="blocks" if nb >= 3 else "cluster",
                          n_blocks=max(nb, 1), spectrum=False)
-            self.streams.append(StreamingSSI(ssi, fs_hz, channels, window_s=window_s, update_s=c.update_s))
+            self.streams.append(StreamingSSI(ssi, fs_hz, channels, window_s=c.longest_window_s,
+                                             update_s=c.update_s, min_window_s=c.first_window_s))
         self.key = (tuple(channels), float(fs_hz))
 
     def push(self, stamp_s: float, data: np.ndarray, channels, fs_hz: float) -> list[TrackerUpdate]:

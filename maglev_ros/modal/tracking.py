@@ -1,7 +1,8 @@
 """Online modal tracking over a sensor stream (no rclpy).
 
 :class:`StreamingSSI` turns a stream of blocks into a :class:`ModalResult` every ``update_s`` of
-stream time, identified from the last ``window_s``. Per-update work is kept low:
+stream time, identified from the last ``window_s`` (or from all of the stream once
+``min_window_s`` has come, until it reaches ``window_s``). Per-update work is kept low:
 
 * decimation by a stateful polyphase FIR (only the kept output samples are computed; linear
   phase, so no extra poles enter the data, unlike an IIR anti-alias filter);

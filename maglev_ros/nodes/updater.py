@@ -331,11 +331,14 @@ class UpdaterNode(Node):
         without the interpreter's teardown, which aborted in the worker's native code, 'terminate
         called without an active exception', when the demo's graph stopped while the layer ran)."""
         w = self.worker
-        if (w is None or not w.is_alive()) and not self.busy():
+
+        def ending() -> bool:
+            return getattr(self, "n_end_jobs", 0) > 0
+        if (w is None or not w.is_alive()) and not ending():
             return False
         if w is not None:
             w.join(self.SHUTDOWN_WAIT_S)
-        if (w is not None and w.is_alive()) or self.busy():
+        if (w is not None and w.is_alive()) or ending():
             self.get_logger().warning("shutdown while the magnet layer or a recording-end update is running: "
                                       "its result is discarded (the parameter history holds every accepted update)")
             return True

@@ -127,7 +127,8 @@ class ModalIdNode(Node):
             self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} block at {block.stamp_s:.3f} s: {exc}")
             return
         for up in updates:
-            self.pub.publish(self._message(up, block.stamp_ns))
+            if up.modes or up.events:   # nothing confirmed yet (a mode gets its id when seen twice)
+                self.pub.publish(self._message(up, block.stamp_ns))
 
     def _message(self, update, stamp_ns: int) -> ModalEstimate:
         out = ModalEstimate()

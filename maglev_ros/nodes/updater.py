@@ -174,6 +174,8 @@ class UpdaterNode(Node):
         from maglev_ros.errors import UserError
         if WHOLE_RECORDING in msg.method and self.recording_update:
             return                                     # the recording-end update identifies them itself
+        if all(m.status == "lost" for m in msg.modes):
+            return                                     # no mode to update on
         stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         try:
             with self.lock:

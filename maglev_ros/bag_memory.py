@@ -135,22 +135,39 @@ class RecordingCollector:
 
     A replay says where recordings end (``finish``, on its recording_end event). A live stream has
     no such event: with ``metadata_ends=True`` new metadata that differs from the current while
-    blocks are held ends the recording (``set_metadata`` returns it)."""
+    blocks are held ends the recording (``set_metadata`` returns it).
 
-    def __init__(self, topics: Iterable[str], name: str = "live recording") -> None:
+    A recording whose samples exceed ``max_bytes`` (as received) is not kept: its blocks are
+    dropped, ``overflowed`` is set and ``finish`` gives None for it (a live stream that never
+    ends must not fill the memory)."""
+
+    def __init__(self, topics: Iterable[str], name: str = "live recording", max_bytes: float = 1e9) -> None:
         self.topics = frozenset(topics)
         self.name = name
+        self.max_bytes = float(max_bytes)
         self.metadata_json: str | None = None
         self.n_recordings = 0
+        self.overflowed = False
+        self._bytes = 0
         self._bag = MemoryBag(name)
 
     @property
     def has_data(self) -> bool:
-        return self._bag.n_blocks > 0
+        return self._bag.n_blocks > 0 or self.overflowed
 
-    def add(self, topic: str, block: Block) -> None:
-        if topic in self.topics:
-            self._bag.add(topic, block)
+    def add(self, topic: str, block: Block) -> bool:
+        """Keep the block; False when it made the recording too large to keep (then and after)."""
+        if topic not in self.topics:
+            return True
+        if self.overflowed:
+            return False
+        self._bytes += np.asarray(block.data).nbytes
+        if self._bytes > self.max_bytes:
+            self.overflowed = True
+            self._bag = MemoryBag(self.name)
+            return False
+        self._bag.add(topic, block)
+        return True
 
     def set_metadata(self, text: str, metadata_ends: bool = False) -> MemoryBag | None:
         done = None
@@ -164,7 +181,8 @@ class RecordingCollector:
         or None without blocks or metadata; collecting starts afresh. ContractError when the
         metadata is not valid."""
         bag, self._bag = self._bag, MemoryBag(self.name)
-        if not bag.n_blocks or self.metadata_json is None:
+        over, self.overflowed, self._bytes = self.overflowed, False, 0
+        if over or not bag.n_blocks or self.metadata_json is None:
             return None
         self.n_recordings += 1
         bag.path = Path(source or f"{self.name} {self.n_recordings}")

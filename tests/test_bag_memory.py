@@ -94,3 +94,15 @@ def test_collector_ends_a_recording_on_new_metadata_only_when_asked(faulty_bag):
     assert list(done.topics) == ["/testline/metadata", GUIDEWAY_ACCEL] and done.topics[GUIDEWAY_ACCEL].count == 5
     assert c.finish("bags/x") is None                 # nothing collected since
     assert same_source(done, done) and not same_source(done, memory_copy(faulty_bag))
+
+
+def test_collector_drops_a_recording_larger_than_its_cap(faulty_bag):
+    with BagReader(faulty_bag) as r:
+        md = r.metadata.to_json()
+        blocks = [b for _, b in r.iter_blocks(GUIDEWAY_ACCEL)]
+    cap = sum(b.data.nbytes for b in blocks[:3])
+    c = RecordingCollector([GUIDEWAY_ACCEL], max_bytes=cap)
+    c.set_metadata(md)
+    assert [c.add(GUIDEWAY_ACCEL, b) for b in blocks[:5]] == [True, True, True, False, False]
+    assert c.overflowed and c.finish() is None        # not kept: no result for it
+    assert c.add(GUIDEWAY_ACCEL, blocks[0]) and c.finish().topics[GUIDEWAY_ACCEL].count == 1   # the next is

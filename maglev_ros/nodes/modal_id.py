@@ -21,7 +21,9 @@ Parameters (also from YAML: ``--params-file config/modal_id.yaml``); 0 = chosen 
 window_s (0), update_s (2), decimate_to_hz (0; a rate: one band there), block_rows (0),
 max_order (0), order_step (4), fmin_hz (0), fmax_hz (0), n_blocks (0), freq_tol (0.03), mac_min
 (0.8), max_misses (3), min_confirm (2), channels (string[]; default: every vertical guideway
-accelerometer), recording_modes (true: the whole-recording identification at each end).
+accelerometer), recording_modes (true: the whole-recording identification at each end),
+max_recording_mb (1000: a longer recording, as received, is not kept and gets no whole-recording
+modes: a live stream that never ends must not fill the memory).
 """
 from __future__ import annotations
 
@@ -72,8 +74,10 @@ class ModalIdNode(Node):
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         from maglev_ros.bag_memory import RecordingCollector
+        max_mb = float(self.declare_parameter("max_recording_mb", 1000.0).value)
         self.collector = RecordingCollector((TOPIC_GUIDEWAY_ACCEL, TOPIC_VEHICLE_POSITION),
-                                            name=f"{self.get_fully_qualified_name()} recording")
+                                            name=f"{self.get_fully_qualified_name()} recording",
+                                            max_bytes=max_mb * 1e6)
         self.lock = threading.Lock()               # the collector: fed by callbacks, emptied at an end
         self.jobs: queue.SimpleQueue = queue.SimpleQueue()
         self.n_jobs = 0                            # recordings handed over and not yet published
@@ -106,16 +110,14 @@ class ModalIdNode(Node):
 
     def _on_position(self, msg) -> None:
         if self.gate.block(msg, TOPIC_VEHICLE_POSITION) is not None:
-            with self.lock:
-                self.collector.add(TOPIC_VEHICLE_POSITION, block_from_msg(msg))
+            self._keep(TOPIC_VEHICLE_POSITION, msg)
 
     def _on_block(self, msg) -> None:
         block = self.gate.block(msg, TOPIC_GUIDEWAY_ACCEL)
         if block is None:
             return
-        if self.recording_modes:   # as received: the verb's reader converts units itself
-            with self.lock:
-                self.collector.add(TOPIC_GUIDEWAY_ACCEL, block_from_msg(msg))
+        if self.recording_modes:
+            self._keep(TOPIC_GUIDEWAY_ACCEL, msg)
         cols = list(range(len(block.channels)))
         if self.wanted:
             cols = [j for j, c in enumerate(block.channels) if c in self.wanted] or cols
@@ -129,6 +131,17 @@ class ModalIdNode(Node):
         for up in updates:
             if up.modes or up.events:   # nothing confirmed yet (a mode gets its id when seen twice)
                 self.pub.publish(self._message(up, block.stamp_ns))
+
+    def _keep(self, topic: str, msg) -> None:
+        """The block as received (the verb's reader converts units itself) for the recording's end."""
+        with self.lock:
+            was = self.collector.overflowed
+            self.collector.add(topic, block_from_msg(msg))
+            now = self.collector.overflowed
+        if now and not was:
+            self.get_logger().warning(
+                f"the recording exceeds max_recording_mb ({self.collector.max_bytes / 1e6:g} MB): it is not "
+                f"kept and gets no whole-recording modes; the online estimates go on")
 
     def _message(self, update, stamp_ns: int) -> ModalEstimate:
         out = ModalEstimate()

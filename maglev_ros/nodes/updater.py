@@ -35,7 +35,9 @@ ended recording are dropped), and its ``maglev-params/1`` parameters are stored 
 and published as the next revision: the verb's ``params.json`` values. Its settings are
 parameters named after the verb's options: ``end_max_modes`` (4), ``end_samples`` (60),
 ``end_polish_evals`` (8), ``end_swarm`` (int[] PARTICLES ITERATIONS; [] the verb's default),
-``end_max_window_s`` (0: all), ``end_seed`` (0); ``recording_update`` (true) turns it off.
+``end_max_window_s`` (0: all), ``end_seed`` (0); ``recording_update`` (true) turns it off;
+``max_recording_mb`` (1000): a longer recording, as received, is not kept and gets no
+recording-end update (a live stream that never ends must not fill the memory).
 """
 from __future__ import annotations
 
@@ -94,7 +96,8 @@ class UpdaterNode(Node):
         self.lock = threading.Lock()
         self.worker: threading.Thread | None = None
         from maglev_ros.bag_memory import RecordingCollector
-        self.collector = RecordingCollector(RECORDED_TOPICS, name=f"{self.get_fully_qualified_name()} recording")
+        self.collector = RecordingCollector(RECORDED_TOPICS, name=f"{self.get_fully_qualified_name()} recording",
+                                            max_bytes=float(p("max_recording_mb", 1000.0).value) * 1e6)
         self.ambient = None               # the line's last ambient recording (MemoryBag)
         self.closed = False               # the recording has ended: its online results are dropped
         self.end_jobs: queue.SimpleQueue = queue.SimpleQueue()
@@ -197,17 +200,27 @@ class UpdaterNode(Node):
                 return
             with self.lock:
                 self.core.on_vehicle_block(topic, blk)
-                if self.recording_update:   # as received: the verb's reader converts units itself
-                    self.collector.add(topic, block_from_msg(msg))
+            if self.recording_update:
+                self._keep(topic, msg)
         return cb
 
     def _recorded(self, topic: str):
         """Guideway streams: only kept for the recording-end update."""
         def cb(msg) -> None:
             if self.gate.block(msg, topic) is not None:
-                with self.lock:
-                    self.collector.add(topic, block_from_msg(msg))
+                self._keep(topic, msg)
         return cb
+
+    def _keep(self, topic: str, msg) -> None:
+        """The block as received (the verb's reader converts units itself) for the recording's end."""
+        with self.lock:
+            was = self.collector.overflowed
+            self.collector.add(topic, block_from_msg(msg))
+            now = self.collector.overflowed
+        if now and not was:
+            self.get_logger().warning(
+                f"the recording exceeds max_recording_mb ({self.collector.max_bytes / 1e6:g} MB): it is not "
+                f"kept and gets no recording-end update; the moving-window updates go on")
 
     def _on_residual(self, msg) -> None:
         blk = self.gate.block(msg, TOPIC_RESIDUAL)

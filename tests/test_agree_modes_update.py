@@ -9,8 +9,9 @@ floats: mode frequencies, damping, their stds, MPC and shapes with ==; the updat
 a relative 1e-9 (the same pipeline in another process: numba or BLAS may order a sum otherwise;
 measured difference 0 here, where nodes and verbs run with the same BLAS threads, tests/conftest.py;
 with another thread count the update itself moves by ~1e-7: kp 7046.5348 with one OpenBLAS
-thread, 7046.5358 with the default, on bags/paper_*). The sample-bag test runs the update with small swarms and samples (the
-verb's options, given to both sides alike: the rule is the same, the cost a quarter); the slow
+thread, 7046.5358 with the default, on bags/paper_*). The sample-bag test runs the update with
+small swarms and samples (the verb's options, given to both sides alike: the rule is the same,
+the cost a quarter; the gains then end at a bound of their range, which both sides reach); the slow
 tests run the verb's defaults on the sample bags and on three partner-sim cases.
 """
 import json

@@ -49,6 +49,14 @@ class MemoryBag(BagReader):
     def has(self, topic: str) -> bool:
         return bool(self._blocks.get(topic))
 
+    def span_s(self, topic: str) -> tuple[float, float] | None:
+        """(first stamp, latest block end) of ``topic`` in stream seconds; None without blocks."""
+        bs = self._blocks.get(topic)
+        if not bs:
+            return None
+        return (min(b.stamp_ns for _, b in bs) * 1e-9,
+                max(b.stamp_ns * 1e-9 + b.n_samples / b.sample_rate_hz for _, b in bs))
+
     # ----------------------------------------------------------------- the BagReader interface
     def open(self) -> "MemoryBag":
         return self
@@ -154,6 +162,10 @@ class RecordingCollector:
     @property
     def has_data(self) -> bool:
         return self._bag.n_blocks > 0 or self.overflowed
+
+    def span_s(self, topic: str) -> tuple[float, float] | None:
+        """The current recording's (first stamp, latest block end) of ``topic`` [s], as received."""
+        return self._bag.span_s(topic)
 
     def add(self, topic: str, block: Block) -> bool:
         """Keep the block; False when it made the recording too large to keep (then and after)."""

@@ -100,6 +100,7 @@ class UpdaterNode(Node):
                                             max_bytes=float(p("max_recording_mb", 1000.0).value) * 1e6)
         self.ambient = None               # the line's last ambient recording (MemoryBag)
         self.closed = False               # the recording has ended: its online results are dropped
+        self.ended_span = None            # stream time [s] of the last ended recording's guideway data
         self.end_jobs: queue.SimpleQueue = queue.SimpleQueue()
         self.n_end_jobs = 0               # recordings handed to the end worker, not yet published
         self.end_worker: threading.Thread | None = None
@@ -182,7 +183,7 @@ class UpdaterNode(Node):
         stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         try:
             with self.lock:
-                if self.closed:
+                if self.closed or not self._of_this_recording(stamp):
                     return
                 pub = self.core.on_modes(list(msg.modes), stamp)
                 self._drain_log()
@@ -192,6 +193,21 @@ class UpdaterNode(Node):
         if pub is not None:
             self.get_logger().info(f"guideway update accepted: rev {pub.revision}")
             self._publish(pub)
+
+    def _of_this_recording(self, stamp_s: float) -> bool:
+        """Whether an online estimate stamped ``stamp_s`` (the end of its window) was made from the
+        recording now coming in: within the guideway accelerations this node has received of it. An
+        estimate of the previous recording can arrive after the next one has begun (another node's
+        output, no order across topics): adopted then, it would outlive that recording's end update.
+        Before this recording's first block: not within the last ended recording. Without the
+        recording-end update nothing is collected and every estimate counts."""
+        if not self.recording_update:
+            return True
+        span = self.collector.span_s(TOPIC_GUIDEWAY_ACCEL)
+        if span is not None:
+            return span[0] <= stamp_s <= span[1]
+        last = self.ended_span
+        return last is None or not last[0] <= stamp_s <= last[1]
 
     def _vehicle(self, topic: str):
         def cb(msg) -> None:
@@ -278,6 +294,7 @@ class UpdaterNode(Node):
         from maglev_ros.updating.history import line_key
         with self.lock:
             self.closed = True
+            self.ended_span = bag.span_s(TOPIC_GUIDEWAY_ACCEL) or self.ended_span
             self.core.new_recording()
         kind = bag.metadata.run_kind
         if kind == "ambient":

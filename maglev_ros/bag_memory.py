@@ -138,16 +138,21 @@ def same_source(a, b) -> bool:
 
 class RecordingCollector:
     """The blocks of ``topics`` received for the current recording, as a :class:`MemoryBag` when
-    it ends. The recording's metadata is the one received last before its end (DDS does not order
-    delivery across topics: a recording's first blocks may come before its metadata).
+    it ends, under that recording's metadata.
 
-    A replay says where recordings end (``finish``, on its recording_end event). A live stream has
-    no such event: with ``metadata_ends=True`` new metadata that differs from the current while
-    blocks are held ends the recording (``set_metadata`` returns it).
+    A replay says where recordings end (:meth:`end`, on its recording_end event) and publishes each
+    recording's metadata once, latched, after the previous recording has ended everywhere. DDS
+    orders nothing across topics: the metadata can reach a node after some of the recording's
+    blocks, or even after its end event (seen on a loaded machine: a pass's blocks were taken
+    under the ambient's metadata). So a recording's metadata is the first received since the
+    previous end; an end before it comes waits (``waiting``) and ``set_metadata`` returns the
+    recording when it does. A live stream has no end events: with ``metadata_ends=True`` new
+    metadata that differs from the current while blocks are held ends the recording
+    (``set_metadata`` returns it).
 
     A recording whose samples exceed ``max_bytes`` (as received) is not kept: its blocks are
-    dropped, ``overflowed`` is set and ``finish`` gives None for it (a live stream that never
-    ends must not fill the memory)."""
+    dropped, ``overflowed`` is set and it gives no MemoryBag (a live stream that never ends must
+    not fill the memory)."""
 
     def __init__(self, topics: Iterable[str], name: str = "live recording", max_bytes: float = 1e9) -> None:
         self.topics = frozenset(topics)
@@ -158,6 +163,13 @@ class RecordingCollector:
         self.overflowed = False
         self._bytes = 0
         self._bag = MemoryBag(name)
+        self._fresh = False                  # metadata received since the last end
+        self._waiting: tuple | None = None   # (source,) of an end that waits for its metadata
+
+    @property
+    def waiting(self) -> bool:
+        """An ended recording waits for its metadata."""
+        return self._waiting is not None
 
     @property
     def has_data(self) -> bool:
@@ -182,11 +194,26 @@ class RecordingCollector:
         return True
 
     def set_metadata(self, text: str, metadata_ends: bool = False) -> MemoryBag | None:
+        """New metadata; returns a recording it completes (an end that waited for it, or, with
+        ``metadata_ends``, the recording it ends), else None."""
+        if self._waiting is not None:
+            (source,), self._waiting = self._waiting, None
+            self.metadata_json = text
+            return self.finish(source)
         done = None
         if metadata_ends and self.has_data and self.metadata_json is not None and text != self.metadata_json:
             done = self.finish()
         self.metadata_json = text
+        self._fresh = True
         return done
+
+    def end(self, source: str | None = None) -> MemoryBag | None:
+        """The replay's end of the recording: :meth:`finish`; when no metadata has come since the
+        previous end while blocks have, None and the end waits for it (``waiting``)."""
+        if not self._fresh and self.has_data:
+            self._waiting = (source,)
+            return None
+        return self.finish(source)
 
     def finish(self, source: str | None = None) -> MemoryBag | None:
         """The recording so far under ``source`` (default: "<name> <n>") with the last metadata,
@@ -194,6 +221,7 @@ class RecordingCollector:
         metadata is not valid."""
         bag, self._bag = self._bag, MemoryBag(self.name)
         over, self.overflowed, self._bytes = self.overflowed, False, 0
+        self._fresh = False
         if over or not bag.n_blocks or self.metadata_json is None:
             return None
         self.n_recordings += 1

@@ -96,6 +96,25 @@ def test_collector_ends_a_recording_on_new_metadata_only_when_asked(faulty_bag):
     assert same_source(done, done) and not same_source(done, memory_copy(faulty_bag))
 
 
+def test_an_end_before_its_metadata_waits_for_it(faulty_bag):
+    """A replay's end event can reach a node before the recording's (latched) metadata: the end
+    waits, and the metadata that comes next completes it."""
+    with BagReader(faulty_bag) as r:
+        md = json.loads(r.metadata.to_json())
+        blocks = [b for _, b in r.iter_blocks(GUIDEWAY_ACCEL)]
+    first, second = (json.dumps({**md, "description": d}) for d in ("first", "second"))
+    c = RecordingCollector([GUIDEWAY_ACCEL])
+    c.set_metadata(first)
+    c.add(GUIDEWAY_ACCEL, blocks[0])
+    one = c.end("bags/one")
+    assert one.metadata.description == "first" and not c.waiting
+    c.add(GUIDEWAY_ACCEL, blocks[1])                   # the next recording's blocks, its metadata late
+    assert c.end("bags/two") is None and c.waiting
+    two = c.set_metadata(second)
+    assert not c.waiting and str(two.path) == "bags/two" and two.metadata.description == "second"
+    assert c.end("bags/three") is None and not c.waiting   # nothing collected: nothing to wait for
+
+
 def test_collector_drops_a_recording_larger_than_its_cap(faulty_bag):
     with BagReader(faulty_bag) as r:
         md = r.metadata.to_json()

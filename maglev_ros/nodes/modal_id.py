@@ -93,9 +93,10 @@ class ModalIdNode(Node):
     # ------------------------------------------------------------------ the stream
     def _on_metadata(self, msg) -> None:
         self.gate.new_stream()
-        with self.lock:
-            # a live stream has no recording_end: new metadata ends the recording
-            done = self.collector.set_metadata(msg.data, metadata_ends=not self.lifecycle.events_seen)
+        # a recording that ended before its metadata came; on a live stream (no recording_end)
+        # the recording that new metadata ends
+        done = self._finish(lambda: self.collector.set_metadata(
+            msg.data, metadata_ends=not self.lifecycle.events_seen))
         if done is not None:
             self._recording_ended(done)
         if self.wanted_given:
@@ -164,17 +165,22 @@ class ModalIdNode(Node):
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: identify it whole (worker thread)."""
         ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
-        with self.lock:
-            bag = self._finish(ev.bag if ev is not None and ev.bag else None)
+        source = ev.bag if ev is not None and ev.bag else None
+        bag = self._finish(lambda: self.collector.end(source))
         if bag is not None:
             self._recording_ended(bag)
-        else:
-            self.core.reset()
+            return
+        self.core.reset()
+        if self.collector.waiting:
+            self.get_logger().info(f"recording {index} ended before its {TOPIC_METADATA}: waiting for it")
 
-    def _finish(self, source):
+    def _finish(self, step):
+        """``step`` (a collector call that may complete a recording) under the lock; a recording
+        whose metadata is not valid is logged and skipped."""
         from maglev_ros.errors import ContractError
         try:
-            return self.collector.finish(source)
+            with self.lock:
+                return step()
         except ContractError as exc:
             self.get_logger().error(f"recording not identified: {exc}")
             return None
@@ -188,7 +194,7 @@ class ModalIdNode(Node):
         self.jobs.put(bag)
 
     def busy(self) -> bool:
-        return self.n_jobs > 0
+        return self.n_jobs > 0 or self.collector.waiting
 
     def _work(self) -> None:
         while True:

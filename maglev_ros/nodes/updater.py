@@ -149,13 +149,16 @@ class UpdaterNode(Node):
         from maglev_ros.errors import UserError
         from maglev_ros.updating.history import line_key
         self.gate.new_stream()
-        with self.lock:
-            # a live stream has no recording_end: new metadata ends the recording
-            done = self.collector.set_metadata(msg.data, metadata_ends=not self.lifecycle.events_seen)
+        waited = self.collector.waiting
+        # a recording that ended before its metadata came; on a live stream (no recording_end)
+        # the recording that new metadata ends
+        done = self._finish(lambda: self.collector.set_metadata(
+            msg.data, metadata_ends=not self.lifecycle.events_seen))
         if done is not None:
             self._recording_ended(done)
-        with self.lock:
-            self.closed = False            # a new recording: its online results count again
+        if not waited:
+            with self.lock:
+                self.closed = False        # a new recording: its online results count again
         try:
             with self.lock:
                 self.core.set_metadata(parse_metadata(msg.data, "/testline/metadata").raw)
@@ -279,16 +282,26 @@ class UpdaterNode(Node):
 
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: the verb's update on it (worker thread)."""
-        from maglev_ros.errors import ContractError
         ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
+        source = ev.bag if ev is not None and ev.bag else None
         with self.lock:
-            try:
-                bag = self.collector.finish(ev.bag if ev is not None and ev.bag else None)
-            except ContractError as exc:
-                self.get_logger().error(f"recording not used for the update: {exc}")
-                bag = None
+            self.closed = True
+        bag = self._finish(lambda: self.collector.end(source))
         if bag is not None:
             self._recording_ended(bag)
+        elif self.collector.waiting:
+            self.get_logger().info(f"recording {index} ended before its /testline/metadata: waiting for it")
+
+    def _finish(self, step):
+        """``step`` (a collector call that may complete a recording) under the lock; a recording
+        whose metadata is not valid is logged and skipped."""
+        from maglev_ros.errors import ContractError
+        try:
+            with self.lock:
+                return step()
+        except ContractError as exc:
+            self.get_logger().error(f"recording not used for the update: {exc}")
+            return None
 
     def _recording_ended(self, bag) -> None:
         from maglev_ros.updating.history import line_key
@@ -319,7 +332,7 @@ class UpdaterNode(Node):
         self.end_jobs.put(job)
 
     def busy(self) -> bool:
-        return self.n_end_jobs > 0
+        return self.n_end_jobs > 0 or self.collector.waiting
 
     def _end_work(self) -> None:
         while True:

@@ -191,6 +191,7 @@ class OnlineDetector:
         self._next_t: dict[str, float] = {}
         self._last_t: dict[str, float] = {}     # channel -> end of its last frame
         self._runs: dict[tuple[str, int], dict] = {}
+        self._waiting: dict[str, deque] = {}    # channel -> cut frames (tend, t, x) not yet judged
         self._inc: dict | None = None           # the open incident
         self._last_reported = -np.inf           # stream time of the last event's report
         self._level: dict[str, np.ndarray] = {}  # channel -> learned residual level per band (L)
@@ -227,16 +228,25 @@ class OnlineDetector:
         xs = np.concatenate([np.interp([t0, t1], pt, px), px[(pt >= t0) & (pt <= t1)]])
         return float(np.min(xs)), float(np.max(xs))
 
-    def add_measured_block(self, block) -> None:
+    def add_measured_block(self, block) -> list[MismatchEvent]:
         """Feed one block of the MEASURED signal (channels named as in the residual); enables the
-        relative allowance (``rel_allowance``) for those channels. Give it before (or with) the
-        residual of the same time; samples older than ``measured_keep_s`` are dropped."""
+        offline cell test (module docstring, 3.) for those channels. A residual frame of such a
+        channel is judged once the measured signal covers it (whatever order the two streams
+        arrive in), or at :meth:`flush`; returns the events completed now. Samples older than
+        ``measured_keep_s`` are dropped."""
         t = block.times_s()
+        out: list[MismatchEvent] = []
         for j, ch in enumerate(block.channels):
             s = self._meas.setdefault(ch, _Samples())
             s.add(t, block.data[:, j].astype(float))
             self._mrate[ch] = float(block.sample_rate_hz)
             s.trim_before(s.last_t - self.measured_keep_s)
+        for ch in block.channels:
+            out += self._judge_waiting(ch)
+        if out or any(self._waiting.values()):
+            out += self._emit_due()
+        self.events += out
+        return out
 
     def add_block(self, block) -> list[MismatchEvent]:
         """Feed one residual Block (core ``sensor_block.Block``); returns events completed now."""
@@ -252,18 +262,37 @@ class OnlineDetector:
                 self._next_t[ch] = buf.first_t + self.frame_s
             elif t.size and t[0] > self._next_t[ch]:      # a gap in the stream: skip its empty frames
                 self._next_t[ch] += np.floor((t[0] - self._next_t[ch]) / self.hop_s) * self.hop_s
+            wait = self._waiting.setdefault(ch, deque())
             while buf.last_t >= self._next_t[ch]:
                 tend = self._next_t[ch]
-                out += self._frame(ch, tend)
+                wait.append((tend, *buf.window(tend - self.frame_s, tend)))
                 self._next_t[ch] = tend + self.hop_s
             buf.trim_before(self._next_t[ch] - self.frame_s - 1.0 / self._rate[ch])
+            out += self._judge_waiting(ch)
         out += self._emit_due()
         self.events += out
         return out
 
-    def flush(self) -> list[MismatchEvent]:
-        """End of stream: close every run and activity episode, emit the open incident."""
+    def _judge_waiting(self, ch: str, force: bool = False) -> list[MismatchEvent]:
+        """Judge the cut frames of ``ch`` in order, each once the measured signal covers it (when
+        the channel has one) or ``force``."""
         out: list[MismatchEvent] = []
+        wait = self._waiting.get(ch)
+        while wait:
+            tend, t, x = wait[0]
+            m = self._meas.get(ch)
+            if not force and self.rel_allowance > 0 and m is not None and m.last_t < tend:
+                break
+            wait.popleft()
+            out += self._frame(ch, tend, t, x)
+        return out
+
+    def flush(self) -> list[MismatchEvent]:
+        """End of stream: judge the frames still waiting for the measured signal, close every run
+        and activity episode, emit the open incident."""
+        out: list[MismatchEvent] = []
+        for ch in list(self._waiting):
+            out += self._judge_waiting(ch, force=True)
         for key in list(self._runs):
             run = self._runs.pop(key)
             run["active"] = False
@@ -273,6 +302,17 @@ class OnlineDetector:
             self._learn(ch)
         self.events += out
         return out
+
+    def new_stream(self) -> None:
+        """A new recording follows (call after :meth:`flush`): its own time axis, noise floor and
+        report stamps; the learned residual levels (what the twin usually leaves) are kept."""
+        for d in (self._res, self._meas, self._rate, self._mrate, self._hist, self._next_t, self._last_t,
+                  self._runs, self._episode, self._waiting):
+            d.clear()
+        self._inc = None
+        self._last_reported = -np.inf
+        self._pos_t.clear()
+        self._pos_x.clear()
 
     def reset_allowance(self) -> None:
         """Forget the learned residual levels (e.g. after the twin was rebuilt)."""
@@ -337,9 +377,8 @@ class OnlineDetector:
         in the new frame alike): 4 above ~40 Hz, ~4.9 at 6-26 Hz, ~6.3 at 0-3 Hz by default."""
         return self.allowance_factor * (self._thresholds(fs) / self.threshold) ** 0.25
 
-    def _frame(self, ch: str, tend: float) -> list[MismatchEvent]:
+    def _frame(self, ch: str, tend: float, t: np.ndarray, x: np.ndarray) -> list[MismatchEvent]:
         fs = self._rate[ch]
-        t, x = self._res[ch].window(tend - self.frame_s, tend)
         if t.size < 8:
             return []
         p = self._frame_power(t, x, fs, tend)

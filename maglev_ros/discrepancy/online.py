@@ -77,6 +77,7 @@ from .features import BAND_EDGES_HZ, FrameGrid, band_powers, band_weights
 
 STALE_S = 5.0           # a channel without a frame for this long (stream time) no longer holds back emission
 LEARN_MAX_S = 60.0      # an activity episode longer than this is learned and restarted
+AWAIT_MAX_S = 10.0      # a channel whose measured stream is this far behind the others' is judged without it
 
 
 def _band_dof(fs: float, frame_s: float, edges: np.ndarray) -> np.ndarray:
@@ -281,8 +282,13 @@ class OnlineDetector:
         while wait:
             tend, t, x = wait[0]
             m = self._meas.get(ch)
-            if not force and self.rel_allowance > 0 and m is not None and m.last_t < tend:
-                break
+            if not force and self.rel_allowance > 0:
+                if m is not None and m.last_t < tend:
+                    break
+                # measured streams come but not yet this channel's: wait, unless the others are far past it
+                newest = max((s.last_t for s in self._meas.values()), default=-np.inf)
+                if m is None and self._meas and newest < tend + AWAIT_MAX_S:
+                    break
             wait.popleft()
             out += self._frame(ch, tend, t, x)
         return out

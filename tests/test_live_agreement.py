@@ -39,11 +39,32 @@ GROUPS = {"/testline/guideway/accel": "guideway_accel", "/testline/guideway/disp
           "/testline/vehicle/accel": "vehicle_accel", "/testline/vehicle/gap": "vehicle_gap"}
 TWIN_PARAMS = ["-p", "dt_max_s:=0.0005"]          # as maglev_ros/launch_graph.py runs it
 NODES = ("twin", "irregularity", "discrepancy")
+DOMAIN = 5                                      # ros_env: 5 + pid % 40
 
 
-def run_graph(tmp: Path, bags, domain: int, disc_params=("-p", "live_diagnosis:=false")) -> dict:
+PUBLISH_PARAMS = r"""
+import json, sys, time
+import rclpy
+from maglev_msgs.msg import TwinParameters
+from maglev_ros.nodes._common import QOS_LATCHED
+rclpy.init()
+node = rclpy.create_node("updater_stand_in")
+pub = node.create_publisher(TwinParameters, "/maglev/twin/parameters", QOS_LATCHED)
+p = json.loads(sys.argv[1])
+msg = TwinParameters(revision=1, names=list(p), values=[float(v) for v in p.values()])
+pub.publish(msg)
+try:
+    while True:
+        rclpy.spin_once(node, timeout_sec=0.2)
+except (KeyboardInterrupt, Exception):
+    pass
+"""
+
+
+def run_graph(tmp: Path, bags, domain: int, disc_params=("-p", "live_diagnosis:=false"), params=None) -> dict:
     """Replay ``bags`` through the three nodes under the protocol; the collected messages per topic
-    (``driver``: the driver's report with the nodes' last statuses)."""
+    (``driver``: the driver's report with the nodes' last statuses). ``params``: twin parameters
+    published (latched) before the replay, as the updater would."""
     env = ros_env(domain)
     tmp.mkdir(parents=True, exist_ok=True)
     done = tmp / "driver.json"
@@ -57,9 +78,11 @@ def run_graph(tmp: Path, bags, domain: int, disc_params=("-p", "live_diagnosis:=
                               stdout=logs[n], stderr=subprocess.STDOUT) for n in NODES]
     coll = subprocess.Popen([sys.executable, str(HERE / "ros_collect.py"), str(tmp / "got.json"), "1500",
                              f"until:{done}", *topics], env=env)
+    if params:
+        procs.append(subprocess.Popen([sys.executable, "-c", PUBLISH_PARAMS, json.dumps(params)], env=env))
     try:
         # fewest subscribers on a data topic: guideway topics have the twin and the discrepancy
-        drv = subprocess.run([sys.executable, str(HERE / "protocol_driver.py"), str(done), "600", ",".join(NODES),
+        drv = subprocess.run([sys.executable, str(HERE / "protocol_driver.py"), str(done), "240", ",".join(NODES),
                               "2", *map(str, bags)], env=env, capture_output=True, text=True, timeout=1500)
         coll.wait(timeout=120)
     finally:
@@ -77,7 +100,7 @@ def _stamp(m) -> int:
     return m["header"]["stamp"]["sec"] * 1_000_000_000 + m["header"]["stamp"]["nanosec"]
 
 
-def offline_twin(bag):
+def offline_twin(bag, params=None):
     """The offline twin's outputs of the bag, fed in (stamp, topic) order, and the bag's blocks."""
     from maglev_ros.twin.online import OnlineTwin
     with BagReader(bag) as r:
@@ -85,7 +108,7 @@ def offline_twin(bag):
         items = [(t, b) for t, b in r.iter_blocks() if t != "/testline/metadata"]
     rank = {t: i for i, t in enumerate([TOPIC_VEHICLE_POSITION, *GROUPS])}
     items.sort(key=lambda tb: (tb[1].stamp_ns, rank[tb[0]]))
-    tw = OnlineTwin(md.raw, dt_max_s=5e-4)
+    tw = OnlineTwin(md.raw, dt_max_s=5e-4, parameters=params)
     return tw.feed(items), items
 
 
@@ -155,7 +178,7 @@ def check_incidents(got, events):
 @pytest.fixture(scope="module")
 def sample_pass(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("agree")
-    got = run_graph(tmp / "graph", [SAMPLE / "paper_pass"], 180)
+    got = run_graph(tmp / "graph", [SAMPLE / "paper_pass"], DOMAIN)
     outs, items = offline_twin(SAMPLE / "paper_pass")
     return got, outs, items, tmp
 
@@ -214,6 +237,33 @@ def test_the_detector_judges_a_frame_the_same_whichever_stream_comes_first():
     assert [what(e) for e in first.events] == [what(e) for e in second.events]
 
 
+WARM_THEN_TWIN = r"""
+import json, sys
+from maglev_ros.bag_reader import BagReader
+from maglev_ros.twin import coupling
+from maglev_ros.twin.online import OnlineTwin
+from maglev_ros.twin.warm import warm
+res = warm()
+sigs = lambda: {n: len(d.overloads) for n, d in (("kernel", coupling._KERNEL), ("mv", coupling._mv))} \
+    if coupling.HAVE_NUMBA else {}
+before = sigs()
+with BagReader(sys.argv[1]) as r:
+    md, items = r.metadata, [(t, b) for t, b in r.iter_blocks(start_s=0.0, duration_s=4.0) if t != "/testline/metadata"]
+outs = OnlineTwin(md.raw, dt_max_s=5e-4).feed(items)
+print(json.dumps({"summary": res.summary(), "numba": res.numba, "before": before, "after": sigs(), "outs": len(outs)}))
+"""
+
+
+def test_after_warm_up_the_online_twin_compiles_nothing():
+    """What the twin node waits for before it says ready: every kernel the stream will call is in."""
+    r = subprocess.run([sys.executable, "-c", WARM_THEN_TWIN, str(SAMPLE / "paper_pass")], capture_output=True,
+                       text=True, timeout=600, env=dict(os.environ, PYTHONPATH=str(HERE.parent)))
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["outs"] > 0 and got["summary"].startswith("twin kernels warm" if got["numba"] else "numba not")
+    assert got["after"] == got["before"]
+
+
 def test_the_recording_profile_from_blocks_is_the_verbs(tmp_path):
     from maglev_ros.irregularity.recording import TOPICS, recording_profile
     bag = SAMPLE / "paper_pass"
@@ -265,7 +315,7 @@ def test_live_incidents_are_the_offline_rules_and_none_on_the_sample_pass(sample
 @pytest.mark.slow
 def test_a_second_run_gives_identical_messages(sample_pass, tmp_path):
     got, *_ = sample_pass
-    again = run_graph(tmp_path, [SAMPLE / "paper_pass"], 180)
+    again = run_graph(tmp_path, [SAMPLE / "paper_pass"], DOMAIN)
     for k in got:
         if k != "driver" and k != "/maglev/irregularity":
             assert again[k] == got[k], k
@@ -273,7 +323,18 @@ def test_a_second_run_gives_identical_messages(sample_pass, tmp_path):
     assert again["/maglev/irregularity"][-1] == got["/maglev/irregularity"][-1]
 
 
+def _overlap(ev, m) -> bool:
+    """A live incident and a located offline mismatch share a channel, time and band."""
+    f = m.get("frequency_hz") or [0.0, np.inf]
+    return (bool(set(ev.channels) & set(m["channels"])) and ev.t0_s < m["time_s"][1] and m["time_s"][0] < ev.t1_s
+            and ev.f0_hz < f[1] and f[0] < ev.f1_hz)
+
+
 PARTNER_CASES = ["H01", "H02", "H08"]      # clean, bearing (boundary condition), sensor (instrumentation)
+# the partner's truth.json names -> the twin's parameters (what a perfect updater would publish)
+PARTNER_NAMES = {"E": "guideway.youngs_modulus_pa", "rho": "guideway.density_kg_m3",
+                 "kb": "guideway.bearing_stiffness_n_per_m", "kp": "levitation.kp_a_per_m",
+                 "kv": "levitation.kv_a_s_per_m", "ka": "levitation.ka_a_s2_per_m"}
 
 
 @pytest.mark.ros
@@ -281,17 +342,44 @@ PARTNER_CASES = ["H01", "H02", "H08"]      # clean, bearing (boundary condition)
 @pytest.mark.skipif(not PARTNER.is_dir(), reason="partner-sim recordings not beside the repository")
 @pytest.mark.parametrize("case", PARTNER_CASES)
 def test_partner_cases_agree_live_and_offline_run_after_run(case, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from maglev_ros.discrepancy.diagnose import DiagnoseConfig, diagnose
+    from maglev_ros.discrepancy.recording import load_recording
     bag = PARTNER / case / "pass"
-    first = run_graph(tmp_path / "a", [bag], 180)
+    pool = ThreadPoolExecutor(1)
+    offline = pool.submit(lambda: diagnose([load_recording(bag)], load_recording(PARTNER / case / "ambient"),
+                                           DiagnoseConfig(n_top=1, fit_every_effect=False)).to_dict())
+    first = run_graph(tmp_path / "a", [bag], DOMAIN)
     outs, items = offline_twin(bag)
     check_twin(first, outs, items)
     check_profile(first["/maglev/irregularity"][-1], verb_profile(bag, tmp_path))
     events = offline_incidents(outs, items)
     check_incidents(first, events)
-    second = run_graph(tmp_path / "b", [bag], 180)
+    second = run_graph(tmp_path / "b", [bag], DOMAIN)
     for k in first:
         if k not in ("driver", "/maglev/irregularity"):
             assert second[k] == first[k], k
     assert second["/maglev/irregularity"][-1] == first["/maglev/irregularity"][-1]
-    print(f"{case}: {len(items)} blocks, residual blocks {first['driver']['statuses']['twin']['detail']}, "
-          f"incidents {[(e.channels, round(e.f0_hz), round(e.f1_hz), round(e.severity)) for e in events]}")
+    # the twin with the case's true parameters (the updater's job done perfectly)
+    truth = json.loads((PARTNER / case / "truth.json").read_text())
+    params = {PARTNER_NAMES[k]: v for k, v in truth["parameters"].items() if k in PARTNER_NAMES}
+    cal = run_graph(tmp_path / "c", [bag], DOMAIN, params=params)
+    outs_cal, _ = offline_twin(bag, params)
+    check_twin(cal, outs_cal, items)
+    events_cal = offline_incidents(outs_cal, items)
+    check_incidents(cal, events_cal)
+    if truth["clean"]:
+        # a clean case: every live incident is where `diagnose` locates a mismatch of the same pass
+        # (channels, time and band overlap), which it explains by no missing physics
+        rep = offline.result(timeout=900)
+        assert rep["missing_physics"] == []
+        for e in events_cal:
+            assert any(_overlap(e, m) for m in rep["mismatches"]), (e.explanation, rep["mismatches"])
+
+    def show(evs):
+        return [(len(e.channels), e.channels[0], round(e.f0_hz), round(e.f1_hz), round(e.severity),
+                 e.detail.get("amplitude_misfit") and round(e.detail["amplitude_misfit"], 2)) for e in evs]
+    pool.shutdown(wait=False, cancel_futures=True)
+    print(f"\n{case} (clean {truth['clean']}): residual blocks {json.loads(first['driver']['statuses']['twin']['detail'])}; "
+          f"incidents with the nominal twin {show(events)}; with the true parameters {show(events_cal)}")

@@ -1,6 +1,7 @@
 """Node ``discrepancy``: watches the twin's residual stream and publishes mismatch reports.
 
-Subscribes every /maglev/twin/residual/<group> (SensorBlock; topics discovered from the graph),
+Subscribes every /maglev/twin/residual/<group> (SensorBlock; the twin's groups from the start, other
+residual topics as they appear in the graph),
 /testline/vehicle/position and the measured streams ``measured_topics`` (for the relative
 allowance; channels matched by name); publishes maglev_msgs/MismatchReport on /maglev/mismatch
 when ``discrepancy.online.OnlineDetector`` closes an incident (one report per incident: all its

@@ -383,3 +383,44 @@ def test_partner_cases_agree_live_and_offline_run_after_run(case, tmp_path):
     pool.shutdown(wait=False, cancel_futures=True)
     print(f"\n{case} (clean {truth['clean']}): residual blocks {json.loads(first['driver']['statuses']['twin']['detail'])}; "
           f"incidents with the nominal twin {show(events)}; with the true parameters {show(events_cal)}")
+
+
+def _science(rep):
+    """What a diagnosis found (the recordings' names differ: bag name vs live stream)."""
+    return {"fit_before": rep["fit_before"]["nrmse"], "fit_after": rep["fit_after"]["nrmse"],
+            "missing": [(m["effect"], json.dumps(m["parameters"], sort_keys=True, default=float))
+                        for m in rep["missing_physics"]],
+            "parameters": rep["updated_parameters"],
+            "mismatches": [(m["channels"], m["frequency_hz"], m["severity"]) for m in rep["mismatches"]]}
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_the_sample_bags_in_one_graph_run_agree_with_the_verbs(tmp_path):
+    """The ambient recording, then the pass, through one graph with the live diagnosis (cheap
+    config): the twin starts afresh for the pass (its outputs are the single-recording ones), the
+    irregularity ends with the verb's profile, the diagnosis equals `diagnose` of the same bags."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from maglev_ros.discrepancy.diagnose import DiagnoseConfig, diagnose
+    from maglev_ros.discrepancy.recording import load_recording
+    amb, bag = SAMPLE / "paper_ambient", SAMPLE / "paper_pass"
+    pool = ThreadPoolExecutor(1)
+    offline = pool.submit(lambda: diagnose([load_recording(bag)], load_recording(amb),
+                                           DiagnoseConfig(n_top=1, fit_every_effect=False)).to_dict())
+    got = run_graph(tmp_path / "g", [amb, bag], DOMAIN,
+                    disc_params=("-p", "n_top:=1", "-p", "fit_every_effect:=false"))
+    assert {n: got["driver"]["statuses"][n]["done"] for n in NODES} == {n: 1 for n in NODES}
+    outs, items = offline_twin(bag)
+    t0, t1 = min(b.stamp_ns for _t, b in items), max(b.stamp_ns for _t, b in items)
+    pass_only = {k: [m for m in v if t0 <= _stamp(m) <= t1] if k.startswith("/maglev/twin/") else v
+                 for k, v in got.items()}
+    check_twin(pass_only, outs, items)
+    check_profile(got["/maglev/irregularity"][-1], verb_profile(bag, tmp_path))
+    assert len(got["/maglev/diagnosis"]) == 1
+    live = json.loads(got["/maglev/diagnosis"][0]["data"])
+    assert _science(live) == _science(offline.result(timeout=900))
+    pool.shutdown()
+    print(f"\nsample bags: live diagnosis fit {live['fit_before']['nrmse']:.3f} -> {live['fit_after']['nrmse']:.3f}, "
+          f"missing physics {[m['effect'] for m in live['missing_physics']]}, {len(live['mismatches'])} mismatches; "
+          f"incidents {len([m for m in got['/maglev/mismatch'] if not m['effect']])}")

@@ -138,7 +138,7 @@ class TwinNode(Node):
         if self.core is not None and not self.spent:
             self._finish()
         self.spent = True
-        self.get_logger().info(f"recording {index} ended: {self.n_in} blocks taken, residual blocks out "
+        self.get_logger().info(f"recording {index} ended ({self.n_in} blocks taken in all); residual blocks out "
                                f"{dict(sorted(self.residual_blocks.items()))}")
         self._set_detail(index)
         self.residual_blocks.clear()

@@ -242,10 +242,9 @@ import json, sys
 from maglev_ros.bag_reader import BagReader
 from maglev_ros.twin import coupling
 from maglev_ros.twin.online import OnlineTwin
-from maglev_ros.twin.warm import warm
+from maglev_ros.twin.warm import _dispatchers, warm
 res = warm()
-sigs = lambda: {n: len(d.overloads) for n, d in (("kernel", coupling._KERNEL), ("mv", coupling._mv))} \
-    if coupling.HAVE_NUMBA else {}
+sigs = lambda: {n: len(d.overloads) for n, d in _dispatchers().items()} if coupling.HAVE_NUMBA else {}
 before = sigs()
 with BagReader(sys.argv[1]) as r:
     md, items = r.metadata, [(t, b) for t, b in r.iter_blocks(start_s=0.0, duration_s=4.0) if t != "/testline/metadata"]

@@ -7,7 +7,8 @@ waits until every named node is ready, then per bag announces ``recording_start`
 topic: the replay starts once they all see it; it ends once every reliable subscriber
 acknowledged every message),
 announces ``recording_end`` with the bag's message counts and waits until every node said done for
-it; then ``finished``. OUT.json gets the nodes' last statuses, the seconds each stage took and
+it; then ``finished``. It also publishes each recording's metadata (latched) before its replay, as
+a replay that lives across recordings does. OUT.json gets the nodes' last statuses, the seconds each stage took and
 "ok" (false with "error" on a timeout or a failed replay). Exit code 0 when ok.
 """
 import json
@@ -20,7 +21,10 @@ import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 
+from std_msgs.msg import String
+
 from maglev_ros.bag_reader import BagReader
+from maglev_ros.nodes._common import QOS_LATCHED
 from maglev_ros.nodes._lifecycle import FINISHED, RECORDING_END, RECORDING_START, GraphWaiter, ReplayEvent
 
 
@@ -30,6 +34,9 @@ def main() -> int:
     rclpy.init()
     node = Node("protocol_driver")
     waiter = GraphWaiter(node)
+    # each recording's metadata stays latched here while its nodes work: the replay process's own
+    # latched copy goes with it, and a node whose metadata subscription matched late missed it
+    metadata = node.create_publisher(String, "/testline/metadata", QOS_LATCHED)
     ex = EventsExecutor()
     ex.add_node(node)
     report = {"ok": False, "stages": []}
@@ -47,6 +54,7 @@ def main() -> int:
         for i, bag in enumerate(bags):
             with BagReader(bag) as r:
                 counts = {t: int(info.count) for t, info in r.topics.items()}
+                metadata.publish(String(data=r.read_metadata_json()))
             waiter.announce(ReplayEvent(RECORDING_START, i, str(bag)))
             rep = subprocess.Popen([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--fast", "--quiet",
                                     "--wait-subscribers", subs], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

@@ -4,7 +4,6 @@ short generated recordings waits for a node's results after each one (events in 
 that never becomes ready or done makes the replay warn and go on after its timeouts.
 
 Two graphs run side by side (their own domains) to keep the file short on a loaded machine."""
-import hashlib
 import json
 import math
 import os
@@ -132,18 +131,45 @@ def test_summary_counts_each_recording_and_ends_when_the_replay_finished(runs):
     assert s["nodes"]["probe"]["done"] == 1
 
 
-def test_summary_digest_is_that_of_the_recorded_bytes(runs):
-    """The replay sends the recorded CDR bytes: the summary's digest of a topic equals one computed
-    from the bags read back with rosbags."""
+def test_summary_digest_is_that_of_the_recorded_messages(runs):
+    """The summary's digest of a topic is the digest rule applied to the bags' messages as read back
+    with rosbags (what went through the graph is what was recorded)."""
+    from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
 
-    from maglev_ros.nodes.summary import combined_digest
+    from maglev_msgs.msg import SensorBlock
+    from maglev_ros.nodes.summary import combined_digest, message_digest
     digests = []
     for path, _ in runs["recs"]:
         with Reader(path) as r:
             conns = [c for c in r.connections if c.topic == VEHICLE_ACCEL]
-            digests += [hashlib.sha256(raw).hexdigest() for _, _, raw in r.messages(connections=conns)]
+            digests += [message_digest(VEHICLE_ACCEL, "maglev_msgs/msg/SensorBlock", deserialize_message(raw, SensorBlock))
+                        for _, _, raw in r.messages(connections=conns)]
     assert runs["summary"]["topics"][VEHICLE_ACCEL]["digest"] == combined_digest(digests)
+
+
+def test_digest_leaves_out_the_wall_clock_and_sees_any_value():
+    """Two publications of the same parameters at different wall times digest alike; a changed value
+    or a changed key of the provenance does not; nor does the CDR's uninitialised padding matter."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from maglev_msgs.msg import TwinParameters
+    from maglev_ros.nodes.summary import message_digest
+
+    def params(stamp_s, time_unix_s, kp=7046.5, fit=0.05):
+        m = TwinParameters()
+        m.header.stamp.sec = stamp_s
+        m.revision, m.names, m.values, m.std = 4, ["kp_a_per_m"], [kp], [float("nan")]
+        m.provenance_json = json.dumps({"time_unix_s": time_unix_s, "fit": {"nrmse": fit, "wall_time_s": time_unix_s}})
+        # through CDR bytes, as a subscriber gets it
+        return deserialize_message(serialize_message(m), TwinParameters)
+
+    def digest(m):
+        return message_digest("/maglev/twin/parameters", "maglev_msgs/msg/TwinParameters", m)
+    same = digest(params(10, 1.8e9))
+    assert digest(params(99, 1.9e9)) == same
+    assert digest(params(10, 1.8e9, kp=7046.6)) != same
+    assert digest(params(10, 1.8e9, fit=0.06)) != same
 
 
 def test_a_node_never_ready_nor_done_is_named_and_the_replay_goes_on(runs):

@@ -22,14 +22,17 @@ the demo's choice; a topic whose publishers are all best effort is then read bes
 """
 from __future__ import annotations
 
+import array
 import hashlib
 import json
+import struct
 import sys
 import time
 
+import numpy as np
+
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import String
 
 from maglev_ros.nodes._common import message_class, rel, run_node
@@ -62,8 +65,10 @@ JSON_FIELDS = {"maglev_msgs/msg/TwinParameters": "provenance_json",
                "maglev_msgs/msg/MismatchReport": "detail_json"}
 JSON_TOPICS = ("/maglev/diagnosis",)
 WALL_CLOCK_KEYS = ("time_unix_s", "wall_time_s", "elapsed_s")
-DIGEST_RULE = ("sha256 over the sorted sha256 of each message's CDR bytes (order-free: a node may "
-               "interleave two sources on a topic); not hashed, as wall-clock dependent: header.stamp of "
+DIGEST_RULE = ("sha256 over the sorted sha256 of each message's fields (order-free: a node may interleave "
+               "two sources on a topic; fields in definition order, arrays as their element bytes, numbers "
+               "as float64/decimal, strings UTF-8, each with its length; not the CDR bytes, whose alignment "
+               "padding a writer leaves uninitialised); not hashed, as wall-clock dependent: header.stamp of "
                + ", ".join(STAMPED_AT_PUBLICATION) + "; JSON keys " + ", ".join(WALL_CLOCK_KEYS)
                + " in " + ", ".join(f"{t.rsplit('/', 1)[1]}.{f}" for t, f in JSON_FIELDS.items())
                + " and " + ", ".join(JSON_TOPICS))
@@ -84,17 +89,39 @@ def _normal_json(text: str) -> str:
         return text
 
 
-def message_digest(topic: str, msgtype: str, raw: bytes, msg=None) -> str:
-    """sha256 of a message's serialized bytes, after removing what the wall clock decides."""
-    if msgtype in STAMPED_AT_PUBLICATION or topic in JSON_TOPICS:
-        msg = msg if msg is not None else deserialize_message(raw, message_class(msgtype))
-        if msgtype in STAMPED_AT_PUBLICATION:
-            msg.header.stamp.sec = msg.header.stamp.nanosec = 0
-        field = JSON_FIELDS.get(msgtype, "data" if topic in JSON_TOPICS else None)
-        if field is not None:
-            setattr(msg, field, _normal_json(getattr(msg, field)))
-        raw = serialize_message(msg)
-    return hashlib.sha256(raw).hexdigest()
+def _hash_fields(h, value) -> None:
+    """Feed ``value`` (a message, array, string, number) to ``h``, the same bytes for the same content."""
+    if hasattr(value, "get_fields_and_field_types"):
+        for name in value.get_fields_and_field_types():
+            _hash_fields(h, getattr(value, name))
+        return
+    if isinstance(value, (array.array, np.ndarray, bytes, bytearray)):
+        b = bytes(value) if isinstance(value, (bytes, bytearray)) else value.tobytes()
+    elif isinstance(value, (list, tuple)):
+        h.update(len(value).to_bytes(8, "little"))
+        for v in value:
+            _hash_fields(h, v)
+        return
+    elif isinstance(value, str):
+        b = value.encode()
+    elif isinstance(value, float):
+        b = struct.pack("<d", value)
+    else:                                   # bool, int
+        b = str(int(value)).encode()
+    h.update(len(b).to_bytes(8, "little"))
+    h.update(b)
+
+
+def message_digest(topic: str, msgtype: str, msg) -> str:
+    """sha256 of a message's fields, after removing what the wall clock decides (``msg`` is changed)."""
+    if msgtype in STAMPED_AT_PUBLICATION:
+        msg.header.stamp.sec = msg.header.stamp.nanosec = 0
+    field = JSON_FIELDS.get(msgtype, "data" if topic in JSON_TOPICS else None)
+    if field is not None:
+        setattr(msg, field, _normal_json(getattr(msg, field)))
+    h = hashlib.sha256()
+    _hash_fields(h, msg)
+    return h.hexdigest()
 
 
 def combined_digest(digests: list[str]) -> str:
@@ -165,8 +192,8 @@ class SummaryNode(Node):
             self._digests[topic] = []
         else:
             self.destroy_subscription(self._subs.pop(topic))
-        self._subs[topic] = self.create_subscription(cls, rel(topic), self._cb(topic, msgtype, cls),
-                                                     self._qos(topic, publishers), raw=True)
+        self._subs[topic] = self.create_subscription(cls, rel(topic), self._cb(topic, msgtype),
+                                                     self._qos(topic, publishers))
 
     def _subscribe_new(self) -> None:
         for name, types in self.get_topic_names_and_types():
@@ -183,17 +210,15 @@ class SummaryNode(Node):
                 if pubs and all(i.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for i in pubs):
                     self._subscribe(topic, self.stats[topic]["type"], pubs)
 
-    def _cb(self, topic: str, msgtype: str, cls):
+    def _cb(self, topic: str, msgtype: str):
         st = self.stats[topic]
         seg = st.setdefault("_segment", {"first": None, "last": None})
 
-        def on_msg(raw: bytes) -> None:
+        def on_msg(msg) -> None:
             self.t_last = time.monotonic()
             st["messages"] += 1
             if topic.startswith("/testline/"):
                 self._received[topic] = self._received.get(topic, 0) + 1
-            msg = deserialize_message(raw, cls)
-            self._digests[topic].append(message_digest(topic, msgtype, raw, msg))
             header = getattr(msg, "header", None)
             if header is not None:
                 t = header.stamp.sec + header.stamp.nanosec * 1e-9
@@ -209,6 +234,7 @@ class SummaryNode(Node):
                 st["last_stamp_s"] = t if st.get("last_stamp_s") is None else max(t, st["last_stamp_s"])
             if hasattr(msg, "channels") and hasattr(msg, "data") and len(msg.channels):
                 st["samples"] += len(msg.data) // len(msg.channels)
+            self._digests[topic].append(message_digest(topic, msgtype, msg))   # last: it may blank the stamp
         return on_msg
 
     # -- the run protocol ------------------------------------------------------------------

@@ -25,7 +25,8 @@ def test_replay_waits_for_the_graph_and_every_message_arrives(tmp_path, monkeypa
     # be half over before it subscribes
     monkeypatch.setitem(launch_graph.GRAPHS, "_test", [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("summary", "maglev_ros.nodes.summary", params={"idle_s": 1.0, "json_out": str(out)}),
+        NodeSpec("summary", "maglev_ros.nodes.summary",
+                 params={"idle_s": 1.0, "json_out": str(out), "reliable": True}),   # counts every message
     ])
     log = io.StringIO()
     t0 = time.monotonic()

@@ -561,9 +561,11 @@ def play_recording(node: ReplayNode, executor, bag: str, index: int):
         window = dict(start_s=node.start_offset_s or None,
                       duration_s=node.duration_s if node.duration_s > 0 else None)
 
+        meta_pub = None
         if TOPIC_METADATA in available:
             for topic, msgtype, _, cdr in reader.iter_raw(topics=[TOPIC_METADATA]):
-                node.publisher_for(topic, msgtype).publish(cdr)
+                meta_pub = node.publisher_for(topic, msgtype)
+                meta_pub.publish(cdr)
                 counts[topic] = 1
                 break
         new = {t: node.publisher_for(t, reader.topics[t].msgtype) for t in data_topics if t not in node._pubs}
@@ -571,6 +573,9 @@ def play_recording(node: ReplayNode, executor, bag: str, index: int):
         if index == 0:
             _wait_for_subscribers(node, executor, [t for t in data_topics if node._pubs.get(t) is not None])
         _wait_for_matches(node, executor, {t: p for t, p in new.items() if p is not None})
+        if meta_pub is not None:
+            # every node has the recording's metadata before its first block (DDS does not order topics)
+            meta_pub.wait_for_all_acked(Duration(seconds=node.wait_timeout_s))
 
         progress = _Progress(node.progress_on, total_s)
         # what ~/seek may jump to: the replayed window of this recording

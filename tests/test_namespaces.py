@@ -79,7 +79,7 @@ def test_two_namespaced_graphs_run_side_by_side_without_crosstalk(tmp_path, monk
             logs[ns] = io.StringIO()
             codes[ns] = launch("_ns", bag=str(bags[ns]), env=env, linger_s=4.0, out=logs[ns], namespace=ns,
                                overrides={"replay": {"rate": 4.0, "progress": False, "wait_subscribers": 2},
-                                          "summary": {"json_out": str(flows[ns])}})
+                                          "summary": {"json_out": str(flows[ns]), "reliable": True}})
         threads = [threading.Thread(target=run, args=(ns,)) for ns in LINES]
         for t in threads:
             t.start()

@@ -146,7 +146,8 @@ class RecordingCollector:
     blocks, or even after its end event (seen on a loaded machine: a pass's blocks were taken
     under the ambient's metadata). So a recording's metadata is the first received since the
     previous end; an end before it comes waits (``waiting``) and ``set_metadata`` returns the
-    recording when it does. A live stream has no end events: with ``metadata_ends=True`` new
+    recording when it does (or :meth:`abandon` gives it up when the next recording begins without
+    it). A live stream has no end events: with ``metadata_ends=True`` new
     metadata that differs from the current while blocks are held ends the recording
     (``set_metadata`` returns it).
 
@@ -206,6 +207,15 @@ class RecordingCollector:
         self.metadata_json = text
         self._fresh = True
         return done
+
+    def abandon(self) -> str | None:
+        """Give up an end that waits for its metadata (the next recording has begun: the metadata
+        never came); returns its source, None when nothing waited. Its blocks are dropped."""
+        if self._waiting is None:
+            return None
+        (source,), self._waiting = self._waiting, None
+        self._bag, self.overflowed, self._bytes = MemoryBag(self.name), False, 0
+        return source or f"{self.name} {self.n_recordings + 1}"
 
     def end(self, source: str | None = None) -> MemoryBag | None:
         """The replay's end of the recording: :meth:`finish`; when no metadata has come since the

@@ -6,7 +6,8 @@ SPEC: {"nodes": [names], "subscribers": {topic: subscriptions the nodes hold},
        "bags": [paths], "collect": ["pkg/msg/Type:/topic", ...], "timeout_s": S}
 
 Waits until every node says ``ready`` on maglev/status; then per bag k: announces
-``recording_start`` k, runs ``maglev-ros replay BAG --fast`` (which ends once every reliable
+``recording_start`` k, publishes the bag's metadata (latched) and waits until every node has
+acknowledged it, runs ``maglev-ros replay BAG --fast`` (which ends once every reliable
 subscriber acknowledged every message), announces ``recording_end`` k (the replay will do both
 itself once it speaks the protocol) and waits until every node says ``done`` >= k. Before a
 replay the probe adds best-effort subscriptions so that every data topic of the bag has the same
@@ -20,9 +21,11 @@ import sys
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
 from maglev_msgs.msg import SensorBlock
 from maglev_ros.bag_reader import BagReader
@@ -48,13 +51,17 @@ def main() -> None:
         got[topic] = []
         node.create_subscription(message_class(msgtype), topic,
                                  lambda m, t=topic: got[t].append(to_plain(m)), qos_for(topic))
+    pub_md = node.create_publisher(String, TOPIC_METADATA, qos_for(TOPIC_METADATA))
     left = waiter.wait(ex, lambda: waiter.not_ready(nodes), timeout)
     assert not left, f"nodes not ready: {left}"
+    left = waiter.wait(ex, lambda: [] if pub_md.get_subscription_count() >= len(nodes) else nodes, timeout)
+    assert not left, "the nodes' metadata subscriptions not matched"
     ends = []
     pads = {}
     for k, bag in enumerate(spec["bags"]):
         with BagReader(bag) as r:
             topics = [t for t, i in r.topics.items() if t != TOPIC_METADATA and i.is_sensor_block]
+            md_json = r.read_metadata_json()
         held = {t: spec["subscribers"].get(t, 0) + pads.get(t, 0) for t in topics}
         n = max(max(held.values()), 1)
         for t in topics:
@@ -62,6 +69,11 @@ def main() -> None:
                 node.create_subscription(SensorBlock, t, lambda m: None, QOS_PAD)
                 pads[t] = pads.get(t, 0) + 1
         waiter.announce(ReplayEvent("recording_start", k, str(bag)))
+        # the replay publishes the metadata latched but does not wait for it to arrive: a node's
+        # reader it matched late missed it (the replay had ended), or got it after the recording's
+        # end; delivered here first and acknowledged by every node, as a replay should
+        pub_md.publish(String(data=md_json))
+        assert pub_md.wait_for_all_acked(Duration(seconds=timeout)), f"{bag}: metadata not acknowledged"
         rep = subprocess.Popen([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--fast",
                                 "--quiet", "--no-clock", "--wait-subscribers", str(n)],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -113,6 +113,10 @@ def test_an_end_before_its_metadata_waits_for_it(faulty_bag):
     two = c.set_metadata(second)
     assert not c.waiting and str(two.path) == "bags/two" and two.metadata.description == "second"
     assert c.end("bags/three") is None and not c.waiting   # nothing collected: nothing to wait for
+    c.add(GUIDEWAY_ACCEL, blocks[2])
+    assert c.end("bags/four") is None and c.waiting
+    assert c.abandon() == "bags/four" and not c.waiting and not c.has_data   # the next one began
+    assert c.set_metadata(first) is None and c.abandon() is None
 
 
 def test_collector_drops_a_recording_larger_than_its_cap(faulty_bag):

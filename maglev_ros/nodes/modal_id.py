@@ -193,6 +193,12 @@ class ModalIdNode(Node):
         return out
 
     # ------------------------------------------------------------------ recording ends
+    def on_recording_start(self, index: int) -> None:
+        with self.lock:
+            lost = self.collector.abandon()
+        if lost is not None:
+            self.get_logger().error(f"{lost}: its {TOPIC_METADATA} never came: no whole-recording modes for it")
+
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: identify it whole (worker thread)."""
         ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)

@@ -315,6 +315,9 @@ class UpdaterNode(Node):
     def on_recording_start(self, index: int) -> None:
         with self.lock:
             self.closed = False
+            lost = self.collector.abandon()
+        if lost is not None:
+            self.get_logger().error(f"{lost}: its /testline/metadata never came: no recording-end update for it")
 
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: the verb's update on it (worker thread)."""

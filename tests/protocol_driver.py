@@ -3,9 +3,12 @@
     python tests/protocol_driver.py OUT.json TIMEOUT_S NODE[,NODE...] SUBSCRIBERS BAG [BAG ...]
 
 waits until every named node is ready, then per bag announces ``recording_start``, replays it with
-``maglev-ros replay --fast --wait-subscribers SUBSCRIBERS`` (the fewest of the nodes on any data
-topic: the replay starts once they all see it; it ends once every reliable subscriber
-acknowledged every message),
+``maglev-ros replay --fast --wait-subscribers N`` (it ends once every reliable subscriber
+acknowledged every message). SUBSCRIBERS ``auto``: N is the most subscribers any data topic has in
+the graph, and the driver adds best-effort subscriptions (never waited for) to the topics with
+fewer, so that the replay starts only once it sees every node's subscription on every topic (with
+N = the fewest, a third node on the vehicle topics missed the first blocks under load); a
+number: that N, no padding,
 announces ``recording_end`` with the bag's message counts and waits until every node said done for
 it; then ``finished``. It also publishes each recording's metadata (latched) before its replay, as
 a replay that lives across recordings does. OUT.json gets the nodes' last statuses, the seconds each stage took and
@@ -24,8 +27,24 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from maglev_ros.bag_reader import BagReader
-from maglev_ros.nodes._common import QOS_LATCHED
+from maglev_ros.nodes._common import QOS_CLOCK, QOS_LATCHED, message_class
 from maglev_ros.nodes._lifecycle import FINISHED, RECORDING_END, RECORDING_START, GraphWaiter, ReplayEvent
+
+
+def pad_subscribers(node, ex, bag) -> int:
+    """Best-effort subscriptions of this node that bring every data topic of ``bag`` to as many
+    subscribers as the busiest has (after the graph view settled); returns that number."""
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    with BagReader(bag) as r:
+        topics = {t: i.msgtype for t, i in r.topics.items() if i.is_sensor_block}
+    have = {t: node.count_subscribers(t) for t in topics}
+    n = max(have.values())
+    for t, k in have.items():
+        for _ in range(n - k):
+            node.create_subscription(message_class(topics[t]), t, lambda _m: None, QOS_CLOCK)
+    return n
 
 
 def main() -> int:
@@ -55,9 +74,10 @@ def main() -> int:
             with BagReader(bag) as r:
                 counts = {t: int(info.count) for t, info in r.topics.items()}
                 metadata.publish(String(data=r.read_metadata_json()))
+            n = str(pad_subscribers(node, ex, bag)) if subs == "auto" else subs
             waiter.announce(ReplayEvent(RECORDING_START, i, str(bag)))
             rep = subprocess.Popen([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--fast", "--quiet",
-                                    "--wait-subscribers", subs], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    "--wait-subscribers", n], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                    text=True, env=os.environ)
             while rep.poll() is None:       # keep taking the nodes' statuses meanwhile
                 ex.spin_once(timeout_sec=0.05)
@@ -65,7 +85,7 @@ def main() -> int:
             if rep.returncode != 0:
                 report["error"] = f"replay of {bag} failed: {log[-2000:]}"
                 return 1
-            stage(f"replayed {i}", [])
+            stage(f"replayed {i} ({n} subscribers per topic)", [])
             waiter.announce(ReplayEvent(RECORDING_END, i, str(bag), counts))
             if not stage(f"done {i}", waiter.wait(ex, lambda: waiter.not_done(names, i), timeout_s)):
                 return 1

@@ -81,9 +81,8 @@ def run_graph(tmp: Path, bags, domain: int, disc_params=("-p", "live_diagnosis:=
     if params:
         procs.append(subprocess.Popen([sys.executable, "-c", PUBLISH_PARAMS, json.dumps(params)], env=env))
     try:
-        # fewest subscribers on a data topic: guideway topics have the twin and the discrepancy
         drv = subprocess.run([sys.executable, str(HERE / "protocol_driver.py"), str(done), "240", ",".join(NODES),
-                              "2", *map(str, bags)], env=env, capture_output=True, text=True, timeout=1500)
+                              "auto", *map(str, bags)], env=env, capture_output=True, text=True, timeout=1500)
         coll.wait(timeout=120)
     finally:
         stop_processes(coll, *procs)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.dirname(__file__))
-from discrepancy_cases import make_case, write_case_bags  # noqa: E402
+from discrepancy_cases import make_case, report_science, write_case_bags  # noqa: E402
 from rosgraph import ros_env, stop_processes  # noqa: E402
 
 from maglev_ros.bag_reader import BagReader  # noqa: E402
@@ -77,15 +77,6 @@ def test_report_entries_become_mismatch_events():
     assert ev[1]["frequency_hz"] == [10.0, 20.0] and ev[1]["severity"] == 3.0
 
 
-def _science(rep):
-    """What the diagnosis found (the recordings' names differ: bag name vs live stream)."""
-    return {"fit_before": rep["fit_before"]["nrmse"], "fit_after": rep["fit_after"]["nrmse"],
-            "missing": [(m["effect"], json.dumps(m["parameters"], sort_keys=True, default=float))
-                        for m in rep["missing_physics"]],
-            "parameters": rep["updated_parameters"],
-            "mismatches": [(m["channels"], m["frequency_hz"], m["severity"]) for m in rep["mismatches"]]}
-
-
 @pytest.fixture(scope="module")
 def live_case(tmp_path_factory):
     """A small sensor-fault case (two bags) and its offline diagnosis, computed on a thread while the
@@ -105,7 +96,7 @@ def _check_live_report(got, offline, log_text):
     assert len(got["/maglev/diagnosis"]) == 1, log_text
     live = json.loads(got["/maglev/diagnosis"][0]["data"])
     assert live["schema"] == "maglev-diagnosis/1"
-    assert _science(live) == _science(offline.result(timeout=400))
+    assert report_science(live) == report_science(offline.result(timeout=400))
     # one report per finding, with the physics named
     named = [m for m in got["/maglev/mismatch"] if m["effect"]]
     assert [m["effect"] for m in named] == [m["effect"] for m in live["missing_physics"]]

@@ -24,6 +24,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.dirname(__file__))
+from discrepancy_cases import report_science  # noqa: E402
 from rosgraph import ros_env, stop_processes  # noqa: E402
 
 from maglev_ros.bag_reader import BagReader  # noqa: E402
@@ -383,15 +384,6 @@ def test_partner_cases_agree_live_and_offline_run_after_run(case, tmp_path):
           f"incidents with the nominal twin {show(events)}; with the true parameters {show(events_cal)}")
 
 
-def _science(rep):
-    """What a diagnosis found (the recordings' names differ: bag name vs live stream)."""
-    return {"fit_before": rep["fit_before"]["nrmse"], "fit_after": rep["fit_after"]["nrmse"],
-            "missing": [(m["effect"], json.dumps(m["parameters"], sort_keys=True, default=float))
-                        for m in rep["missing_physics"]],
-            "parameters": rep["updated_parameters"],
-            "mismatches": [(m["channels"], m["frequency_hz"], m["severity"]) for m in rep["mismatches"]]}
-
-
 @pytest.mark.ros
 @pytest.mark.slow
 def test_the_sample_bags_in_one_graph_run_agree_with_the_verbs(tmp_path):
@@ -417,7 +409,7 @@ def test_the_sample_bags_in_one_graph_run_agree_with_the_verbs(tmp_path):
     check_profile(got["/maglev/irregularity"][-1], verb_profile(bag, tmp_path))
     assert len(got["/maglev/diagnosis"]) == 1
     live = json.loads(got["/maglev/diagnosis"][0]["data"])
-    assert _science(live) == _science(offline.result(timeout=900))
+    assert report_science(live) == report_science(offline.result(timeout=900))
     pool.shutdown()
     print(f"\nsample bags: live diagnosis fit {live['fit_before']['nrmse']:.3f} -> {live['fit_after']['nrmse']:.3f}, "
           f"missing physics {[m['effect'] for m in live['missing_physics']]}, {len(live['mismatches'])} mismatches; "

@@ -52,7 +52,6 @@ import time
 from collections import Counter
 
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
 from std_msgs.msg import String
 
 from maglev_msgs.msg import MismatchReport, SensorBlock
@@ -63,12 +62,7 @@ from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import local_topic, publisher, subscription
-from maglev_ros.nodes._lifecycle import QOS_STATUS, TOPIC_STATUS, WARMING, NodeLifecycle, NodeStatus
-
-# every node's last status (transient local) with room for several: with a reader depth of 1 one
-# node's status arriving before the executor took another's replaced it (the twin's done was lost)
-QOS_STATUSES = QoSProfile(history=QOS_STATUS.history, depth=64, reliability=QOS_STATUS.reliability,
-                          durability=QOS_STATUS.durability)
+from maglev_ros.nodes._lifecycle import QOS_STATUS_READER, TOPIC_STATUS, WARMING, NodeLifecycle, NodeStatus
 
 TOPIC_MISMATCH = "/maglev/mismatch"
 TOPIC_DIAGNOSIS = "/maglev/diagnosis"
@@ -157,7 +151,7 @@ class DiscrepancyNode(Node):
         self._ending_since = 0.0
         self._received: Counter = Counter()     # residual group -> blocks of this recording
         self._producers: dict[str, NodeStatus] = {}
-        self.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUSES)
+        self.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUS_READER)
         for g in RESIDUAL_GROUPS:
             self._subscribe_residual(RESIDUAL_PREFIX + g)
         self.create_timer(0.1, self._progress)

@@ -57,6 +57,7 @@ TOPIC_PARAMETERS = "/maglev/twin/parameters"
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 FOXGLOVE_PIN = "foxglove-sdk==0.30.3"
 IDLE_FLUSH_S = 1.0             # a stream quiet this long (wall time) has its last display bin sent
+DEFAULT_GIRDER_WIDTH_M = 2.0    # drawn when the metadata gives no girder section
 
 # an observer: matches reliable and best-effort publishers, is never waited for (best-effort
 # readers take no part in a reliable writer's flow control), keeps the newest blocks
@@ -125,6 +126,7 @@ class FoxgloveBridge(Node):
         self.map_frames_sent: dict[str, int] = {}
         self.t_map = time.monotonic()
         self.metadata: dict | None = None
+        self.girder_width_m = DEFAULT_GIRDER_WIDTH_M     # drawn width of the girders (from the metadata)
         self.modes = lm.ModeHistory()
         self.mismatches = lm.MismatchLog()
         self.n_mismatch = 0
@@ -300,6 +302,10 @@ class FoxgloveBridge(Node):
             return
         self.gate.new_stream()
         self.metadata = dict(md)
+        try:
+            self.girder_width_m = ls.girder_width_m(self.metadata)
+        except (UserError, KeyError, TypeError, ValueError):
+            self.girder_width_m = DEFAULT_GIRDER_WIDTH_M
         self.map.set_metadata(self.metadata)
         self.map_frames_sent.clear()
         self.tf_slot = None
@@ -323,12 +329,7 @@ class FoxgloveBridge(Node):
         t = _stamp_ns(msg.header)
         self._log(lv.VIEW_MISMATCH, m, t, latched=True)
         self._log(lv.VIEW_MISMATCH_LOG, self.mismatches.add(m), t, latched=True)
-        width = 2.0
-        if self.metadata is not None:
-            try:
-                width = ls.girder_width_m(self.metadata)
-            except (UserError, KeyError, TypeError, ValueError):
-                pass
+        width = self.girder_width_m
         e = ls.mismatch_entity(m, self.n_mismatch, width)
         self.n_mismatch += 1
         if e is not None:
@@ -381,12 +382,7 @@ class FoxgloveBridge(Node):
         from foxglove.messages import (Grid, PackedElementField, PackedElementFieldNumericType, Pose,
                                        Quaternion, Vector2, Vector3)
         ch = self._grid_channel(group)
-        width = 2.0
-        if self.metadata is not None:
-            try:
-                width = ls.girder_width_m(self.metadata)
-            except (UserError, KeyError, TypeError, ValueError):
-                pass
+        width = self.girder_width_m
         cols, stride, fields, data = grid_cells(self.map.rms(group))
         x, y = ls.grid_origin_m(self.map.x0_m, width, lv.TWIN_GROUPS.index(group) if group in lv.TWIN_GROUPS
                                 else len(lv.TWIN_GROUPS), self.map.n_bands, GRID_BAND_HEIGHT_M)

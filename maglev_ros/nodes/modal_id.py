@@ -42,7 +42,7 @@ from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, TOPIC_VEHI
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
 from maglev_ros.nodes._common import BlockGate, block_from_msg, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
-from maglev_ros.nodes._lifecycle import NodeLifecycle
+from maglev_ros.nodes._lifecycle import RECORDING_END, NodeLifecycle
 from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import publisher, subscription
 
@@ -201,7 +201,7 @@ class ModalIdNode(Node):
 
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: identify it whole (worker thread)."""
-        ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
+        ev = self.lifecycle.event(RECORDING_END, index)
         source = ev.bag if ev is not None and ev.bag else None
         bag = self._finish(lambda: self.collector.end(source))
         if bag is not None:

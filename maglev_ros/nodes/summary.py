@@ -240,7 +240,7 @@ class SummaryNode(Node):
     # -- the run protocol ------------------------------------------------------------------
     def on_recording_end(self, index: int) -> None:
         """NodeLifecycle's hook: called before this node says done, so before the next recording."""
-        ev = next((e for e in self.lifecycle.events_seen if e.event == RECORDING_END and e.index == index), None)
+        ev = self.lifecycle.event(RECORDING_END, index)
         self.recordings.append({"index": index, "bag": ev.bag if ev else "",
                                 "published": dict(ev.messages) if ev else {}, "received": self._received})
         self._received = {}
@@ -263,7 +263,7 @@ class SummaryNode(Node):
 
     def _check_finished(self) -> None:
         if self.finished_event is None:
-            ev = next((e for e in self.lifecycle.events_seen if e.event == FINISHED), None)
+            ev = self.lifecycle.event(FINISHED)
             if ev is not None:
                 self.finished_event, self.t_finished = ev, time.monotonic()
 

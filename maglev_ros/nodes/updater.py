@@ -54,7 +54,7 @@ from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
 from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, parse_metadata
 from maglev_ros.nodes._common import BlockGate, block_from_msg, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
-from maglev_ros.nodes._lifecycle import NodeLifecycle
+from maglev_ros.nodes._lifecycle import RECORDING_END, NodeLifecycle
 from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import publisher, subscription
 
@@ -321,7 +321,7 @@ class UpdaterNode(Node):
 
     def on_recording_end(self, index: int) -> None:
         """The replay's recording ``index`` has ended: the verb's update on it (worker thread)."""
-        ev = next((e for e in reversed(self.lifecycle.events_seen) if e.index == index), None)
+        ev = self.lifecycle.event(RECORDING_END, index)
         source = ev.bag if ev is not None and ev.bag else None
         with self.lock:
             self.closed = True

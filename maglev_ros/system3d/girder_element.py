@@ -108,20 +108,22 @@ def element_matrices(section: GirderSection, le: float) -> tuple[np.ndarray, np.
     return k, m
 
 
-def point_shape_rows(xi, le: float, derivative: int = 0) -> dict[str, np.ndarray]:
-    """Rows (..., 12) mapping element DOFs to the section's motion at xi in [0, 1].
+def point_shape_rows(xi, le, derivative: int = 0) -> dict[str, np.ndarray]:
+    """Rows (..., 12) mapping element DOFs to the section's motion at xi in [0, 1] of elements
+    of length ``le`` (a float or an array shaped like xi).
 
     Keys: "u", "v", "w", "rx" (displacements u, v, w of the shear centre and the torsion angle),
     for ``derivative`` 0, or their x-derivatives for ``derivative`` 1.
     """
     xi = np.asarray(xi, dtype=float)
+    le = np.broadcast_to(np.asarray(le, dtype=float), xi.shape)
     out = {key: np.zeros(xi.shape + (12,)) for key in ("u", "v", "w", "rx")}
     if derivative == 0:
         h = hermite(xi, le)
         lin = np.stack([1.0 - xi, xi], axis=-1)
     elif derivative == 1:
         h = hermite_dx(xi, le)
-        lin = np.stack([-np.ones_like(xi), np.ones_like(xi)], axis=-1) / le
+        lin = np.stack([-np.ones_like(xi), np.ones_like(xi)], axis=-1) / le[..., None]
     else:
         raise UserError(f"girder shape functions: derivative must be 0 or 1, got {derivative!r}")
     out["u"][..., _AXIAL] = lin

@@ -84,14 +84,10 @@ class RailInterpolation:
         fcols = self._f2f[cols]
         rows_idx = np.repeat(np.arange(x.size)[:, None], 12, axis=1)
         keep = (fcols >= 0) & inside[:, None]
-        per_point = {k: np.empty((x.size, 12)) for k in ("u", "v", "w", "rx")}
-        for i in range(x.size):  # le differs per element, so evaluate point by point (cheap: 12 values)
-            r = point_shape_rows(xi[i], le[i], derivative)
-            for k in per_point:
-                per_point[k][i] = r[k]
+        per_point = point_shape_rows(xi, le, derivative)
         for k, vals in per_point.items():
             mat = np.zeros((x.size, self.girder.n_free))
-            np.add.at(mat, (rows_idx[keep], fcols[keep]), vals[keep])
+            mat[rows_idx[keep], fcols[keep]] = vals[keep]   # (point, DOF) pairs are unique
             out[k] = mat
         return out
 

@@ -2,6 +2,7 @@
 analytic continuous-beam and torsion frequencies, supports, damping, paper 001's scenario."""
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -201,6 +202,8 @@ def test_paper001_girder_frequencies_sit_at_the_paper_psd_peaks(paper):
     assert md.freq_hz[seen[1]] == pytest.approx(ref["v2"], rel=0.05)
     assert md.freq_hz[md.of_kind("lateral")[0]] == pytest.approx(ref["l1"], rel=0.03)
     assert np.linalg.eigvalsh(g.mass).min() > 0
+    summary = json.loads(json.dumps({"girder": g.spec.to_dict(), "rails": rails.to_dict(), "modes": md.to_dict()}))
+    assert summary["modes"]["kind"][0] == "vertical" and summary["girder"]["span_lengths_m"] == [85.0, 110.0, 85.0]
     # the paper's 3 % Rayleigh damping holds at the two vertical peaks
     for f in (md.freq_hz[vert[0]], md.freq_hz[seen[1]]):
         w = 2 * np.pi * f

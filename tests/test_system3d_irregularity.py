@@ -3,6 +3,7 @@ twin's reference PSDs), samplers (Welch PSD vs target, variance vs the PSD integ
 four-process <-> left/right rail mapping."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +135,12 @@ def test_mapping_round_trip_and_unit_processes(track):
     om = np.array([0.5, 2.0])
     pe = track.pseudo_excitation(om)
     np.testing.assert_allclose(np.einsum("nki,nkj->nij", pe, pe), track.rail_cross_spectrum(om), rtol=1e-12)
+
+
+def test_summary_is_json(track):
+    d = json.loads(json.dumps(track.to_dict()))
+    assert set(d["processes"]) == set(PROCESSES)
+    assert d["band_rms"]["elevation"] == pytest.approx(np.sqrt(quad(track.psds["elevation"], *track.band_rad_per_m)[0]))
 
 
 def test_half_gauge_agrees_between_girder_and_irregularity_scenarios(track):

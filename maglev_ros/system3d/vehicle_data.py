@@ -33,6 +33,7 @@ SIDES = ("left", "right")
 ROLES = ("levitation", "guidance")
 ABSENT_DOF_RULES = ("held", "quasi_static")
 PASSIVE_LATERAL = ("none", "fringing")
+_TAGS = {"value", "unit", "assumed", "source"}
 
 
 @dataclass(frozen=True)
@@ -123,7 +124,17 @@ class _Reader:
     def fail(self, where: str, what: str):
         raise UserError(f"{self.source}: {where}: {what}")
 
+    def untag(self, node: Any, where: str) -> Any:
+        """``{value: v, assumed|source: ..., unit: ...}`` -> v, keeping the tag."""
+        if isinstance(node, Mapping) and "value" in node and set(node) <= _TAGS:
+            for tag in ("assumed", "source"):
+                if tag in node:
+                    self.provenance[where] = f"{tag}: {node[tag]}"
+            return node["value"]
+        return node
+
     def mapping(self, node: Any, where: str, allowed: tuple[str, ...], required: tuple[str, ...] = ()) -> Mapping:
+        node = self.untag(node, where)
         if not isinstance(node, Mapping):
             self.fail(where, f"expected a mapping with keys {list(allowed)}, got {type(node).__name__}")
         for k in node:
@@ -135,12 +146,7 @@ class _Reader:
         return node
 
     def number(self, node: Any, where: str, *, minimum: float | None = 0.0, strict: bool = False) -> float:
-        if isinstance(node, Mapping):
-            self.mapping(node, where, ("value", "assumed", "source", "unit"), ("value",))
-            for tag in ("assumed", "source"):
-                if tag in node:
-                    self.provenance[where] = f"{tag}: {node[tag]}"
-            node = node["value"]
+        node = self.untag(node, where)
         if isinstance(node, bool) or not isinstance(node, (int, float)) or not math.isfinite(float(node)):
             self.fail(where, f"expected a finite number, got {node!r}")
         v = float(node)
@@ -149,11 +155,7 @@ class _Reader:
         return v
 
     def vector3(self, node: Any, where: str) -> tuple[float, float, float]:
-        if isinstance(node, Mapping) and "value" in node:
-            for tag in ("assumed", "source"):
-                if tag in node:
-                    self.provenance[where] = f"{tag}: {node[tag]}"
-            node = node["value"]
+        node = self.untag(node, where)
         if not isinstance(node, (list, tuple)) or len(node) != 3:
             self.fail(where, f"expected [x, y, z] in metres, got {node!r}")
         return tuple(self.number(v, f"{where}[{i}]", minimum=None) for i, v in enumerate(node))

@@ -140,7 +140,7 @@ def assemble(data: VehicleData) -> Vehicle3D:
     Kr = P.T @ K @ P
     Cr = P.T @ C @ P
     Mr = M[np.ix_(kept, kept)]
-    return Vehicle3D(data, names, Mr, 0.5 * (Cr + Cr.T), 0.5 * (Kr + Kr.T), P, P.T @ g)
+    return Vehicle3D(data, names, Mr, Cr, Kr, P, P.T @ g)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -260,3 +260,63 @@ def test_loader_file_errors(tmp_path):
         load_vehicle(bad)
     with pytest.raises(UserError, match="cannot read"):
         load_vehicle(tmp_path / "missing.yaml")
+
+
+def test_every_number_of_the_paper_vehicle_is_tagged():
+    bare = []
+
+    def walk(node, where):
+        if isinstance(node, dict):
+            if "value" in node:
+                assert str(node.get("assumed", node.get("source", ""))).strip(), where
+                return
+            for k, v in node.items():
+                walk(v, f"{where}.{k}")
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                walk(v, f"{where}[{i}]")
+        elif isinstance(node, (int, float)) and not isinstance(node, bool) and where != ".version":
+            bare.append(where)
+
+    walk(_doc(), "")
+    assert not bare, f"untagged numbers: {bare}"
+
+
+def _guided_body_doc():
+    """One body held by a levitation magnet under each rail and a guidance magnet at each rail."""
+    lev = dict(nominal_gap_m=0.01, static_current_a=20.0, inductance_h=0.1, resistance_ohm=1.0,
+               kp_v_per_m=2.0e4, kv_v_s_per_m=800.0, ka_v_s2_per_m=10.0)
+    return {
+        "format": "maglev-vehicle", "absent_dofs": "held", "passive_lateral": "none",
+        "bodies": [{"name": "body", "mass_kg": 1000.0, "inertia_kg_m2": {"xx": 200.0, "yy": 300.0, "zz": 300.0},
+                    "centre_m": [0.0, 0.0, 0.3], "dofs": ["y", "z", "rx"]}],
+        "magnets": [{"name": "lev_l", "body": "body", "point_m": [0.0, 1.0, 0.0], "side": "left",
+                     "role": "levitation", "loop": "lv_l"},
+                    {"name": "lev_r", "body": "body", "point_m": [0.0, -1.0, 0.0], "side": "right",
+                     "role": "levitation", "loop": "lv_r"},
+                    {"name": "gd_l", "body": "body", "point_m": [0.0, 0.9, 0.0], "side": "left",
+                     "role": "guidance", "loop": "gd_l"},
+                    {"name": "gd_r", "body": "body", "point_m": [0.0, -0.9, 0.0], "side": "right",
+                     "role": "guidance", "loop": "gd_r"}],
+        "loops": [dict(id="lv_l", **lev), dict(id="lv_r", **lev),
+                  dict(id="gd_l", preload_force_n=2000.0, **lev), dict(id="gd_r", preload_force_n=2000.0, **lev)],
+    }
+
+
+def test_guidance_magnets_centre_the_body():
+    data = vehicle_data_from_dict(_guided_body_doc(), "guided")
+    ss = build_state_space(data)
+    st = ss.static
+    np.testing.assert_allclose(st.magnet_force_n, [1000 * 9.81 / 2] * 2 + [2000.0] * 2, rtol=1e-12)
+    H0 = ss.frequency_response(0.0).real
+    m = 4
+    side = H0 @ np.concatenate([np.zeros(m), np.ones(m), np.zeros(2 * m)])      # rails shifted left
+    up = H0 @ np.concatenate([np.ones(m), np.zeros(3 * m)])
+    names = ss.vehicle.dof_names
+    disp = ss.outputs("disp:")
+    assert side[disp[names.index("body.y")]] == pytest.approx(1.0, abs=1e-9)
+    assert up[disp[names.index("body.z")]] == pytest.approx(1.0, abs=1e-9)
+    assert np.max(np.abs(side[ss.outputs("gap:")])) < 1e-9
+    # the left guidance magnet's gap opens when the body moves right (towards -y)
+    gap_l = ss.outputs("gap:")[2]
+    assert ss.C[gap_l, names.index("body.y")] == pytest.approx(-1.0)

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from maglev_ros.errors import UserError
+from maglev_ros.twin.design import TwinConfig
 from maglev_ros.system3d.vehicle_data import (DOF_NAMES, GROUND, Connection, CurrentLoop, Magnet, RigidBody,
                                               VehicleData)
 
@@ -212,7 +213,7 @@ def _loop_role(data: VehicleData, loop: CurrentLoop) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-def vertical_vehicle_data(config, *, inductance_h: float = 0.0, resistance_ohm: float | None = None) -> VehicleData:
+def vertical_vehicle_data(config: TwinConfig, *, inductance_h: float = 0.0, resistance_ohm: float | None = None) -> VehicleData:
     """Today's vertical twin vehicle (``twin/vehicle.py`` ``vehicle_from_design``) as 3D data in the x-z plane.
 
     Car body and frames keep z and ry (pitch: today's nose-up pitch is -ry), magnets z; every

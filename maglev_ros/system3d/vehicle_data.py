@@ -166,7 +166,8 @@ class _Reader:
         return node
 
     def choice(self, node: Any, where: str, options: tuple[str, ...]) -> str:
-        if node not in options:
+        node = self.untag(node, where)
+        if not isinstance(node, str) or node not in options:
             self.fail(where, f"expected one of {list(options)}, got {node!r}")
         return node
 

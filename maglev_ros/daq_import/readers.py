@@ -24,6 +24,14 @@ from maglev_ros.errors import UserError
 
 __all__ = ["Column", "read_columns"]
 
+
+def _missing(pip_name: str, what: str) -> UserError:
+    """One line for a format library that is not installed (a colcon/rosdep install has no key
+    for npTDMS and asammdf; pip installs them with maglev_ros)."""
+    return UserError(f"reading {what} needs the Python package {pip_name} "
+                     f"(pip install {pip_name}; `pip install maglev_ros` brings it)")
+
+
 # dataset/variable attributes that state a rate or a sample period, and a unit
 _RATE_ATTRS = ("sample_rate_hz", "sample_rate", "rate_hz", "fs")
 _PERIOD_ATTRS = ("wf_increment", "dt", "sample_period_s")
@@ -233,8 +241,10 @@ def _datetime64_ns(x: Any) -> int | None:
 
 
 def _read_tdms(src: SourceSpec, columns: Sequence) -> dict:
-    from nptdms import TdmsFile
-
+    try:
+        from nptdms import TdmsFile
+    except ImportError:
+        raise _missing("npTDMS", "TDMS files") from None
     path = src.file
     if not path.exists():
         raise UserError(f"{src.where}.file: {path} not found")
@@ -296,8 +306,10 @@ class _H5Store:
     struct fields as groups, char arrays as uint16, cell arrays as object references)."""
 
     def __init__(self, path: Path, matlab: bool) -> None:
-        import h5py
-
+        try:
+            import h5py
+        except ImportError:
+            raise _missing("h5py", "HDF5 and MATLAB v7.3 files") from None
         self.path = path
         self.matlab = matlab
         try:
@@ -417,9 +429,9 @@ def _store_for(src: SourceSpec):
     if src.format == "hdf5":
         return _H5Store(path, matlab=False)
     with open(path, "rb") as fh:
-        head = fh.read(128)
-    import h5py
-    if b"MATLAB 7.3" in head or h5py.is_hdf5(path):
+        head = fh.read(1032)
+    # v7.3 is HDF5 behind a 512-byte MATLAB header (the HDF5 signature at 0, 512 or 1024)
+    if b"MATLAB 7.3" in head[:128] or any(head[o:o + 8] == b"\x89HDF\r\n\x1a\n" for o in (0, 512, 1024)):
         return _H5Store(path, matlab=True)
     return _MatStore(path)
 
@@ -553,8 +565,10 @@ def _is_num(x: Any) -> bool:
 
 # ------------------------------------------------------------------------------------ MDF
 def _read_mdf(src: SourceSpec, columns: Sequence) -> dict:
-    from asammdf import MDF
-
+    try:
+        from asammdf import MDF
+    except ImportError:
+        raise _missing("asammdf", "MDF files") from None
     path = src.file
     if not path.exists():
         raise UserError(f"{src.where}.file: {path} not found")

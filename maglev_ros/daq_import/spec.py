@@ -10,7 +10,8 @@ One YAML file the user writes (docs/import.md)::
       G3LV: {column: "Acc G3 left", unit: g}
       position_m: {column: "Pos", unit: m, source: {file: position.csv}}
 
-A channel's ``source`` is merged over the top-level one (a second file with the same layout).
+A channel's ``source`` is merged over the top-level one, key by key (a second file with the same
+layout: ``{file: position.csv}``; a ``time`` given there replaces the top-level ``time`` whole).
 Every key is checked here; a problem is one line naming the spec file and the key.
 """
 from __future__ import annotations
@@ -267,11 +268,7 @@ def _source_spec(k: _Keys, obj: Any, path: str, base_dir: Path) -> SourceSpec:
 
 def _merge_source(base: Any, over: Any) -> dict:
     out = dict(base) if isinstance(base, dict) else {}
-    for key, v in over.items():
-        if key == "time" and isinstance(v, dict) and isinstance(out.get("time"), dict):
-            out["time"] = {**out["time"], **v}
-        else:
-            out[key] = v
+    out.update(over)       # keys replaced whole: a time given here is this file's whole time
     if "file" in over and "format" not in over and isinstance(base, dict) and "format" in base:
         # a second file of another kind must not inherit the first one's format
         if format_of(Path(str(over["file"]))) not in (None, base["format"]):

@@ -24,6 +24,28 @@ def template_text() -> str:
     return resources.files("maglev_ros").joinpath("config", TEMPLATE_NAME).read_text(encoding="utf-8")
 
 
+def _loader():
+    """PyYAML's safe loader with YAML 1.2 floats: PyYAML (YAML 1.1) reads ``3.9e10`` (no dot
+    before the exponent sign) as text, which people write for a Young's modulus."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    Loader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    Loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                    |[-+]?\.(?:inf|Inf|INF)
+                    |\.(?:nan|NaN|NAN))$""", re.X),
+        list("-+0123456789."))
+    return Loader
+
+
 def load_yaml(path: str | Path, what: str = "file") -> Any:
     """A YAML (or JSON) document; one-line UserError naming the file and line on a syntax error."""
     import yaml
@@ -36,7 +58,7 @@ def load_yaml(path: str | Path, what: str = "file") -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: cannot read the {what} ({getattr(exc, 'strerror', None) or exc})") from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_loader())  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""

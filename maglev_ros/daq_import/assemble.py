@@ -97,9 +97,19 @@ def _where(spec: ImportSpec, cid: str) -> str:
     return f"{spec.origin}: key channels.{cid}"
 
 
-def _unit(spec: ImportSpec, cs, col: Column) -> tuple[str, str]:
+def _si(spec: ImportSpec, cid: str, topic: str, unit: str) -> tuple[str, float]:
+    """(SI unit, factor) by the contract's unit table; one line naming the spec key otherwise."""
+    try:
+        si, factor, _ = to_si_units(topic, [cid], [unit])
+    except ContractError as exc:
+        raise UserError(f"{_where(spec, cid)}.unit: {exc}") from None
+    return si[0], factor[0]
+
+
+def _unit(spec: ImportSpec, cs, col: Column, topic: str) -> tuple[str, str]:
     """(unit, where it came from) of a channel: the spec's, else the file's; both must agree."""
     if cs.unit is not None:
+        _si(spec, cs.id, topic, cs.unit)        # the wrong kind for the topic is named first
         if col.file_unit is not None and cs.unit != col.file_unit:
             a, b = unit_conversion(cs.unit), unit_conversion(col.file_unit)
             if a is not None and b is not None and a != b:
@@ -226,17 +236,14 @@ def build_topics(spec: ImportSpec):
     conversions, values, si_units = [], {}, {}
     for cs in spec.channels:
         col = cols[cs.id]
-        unit, unit_from = _unit(spec, cs, col)
         topic = sensors[cs.id].topic
-        try:
-            si, factor, _ = to_si_units(topic, [cs.id], [unit])
-        except ContractError as exc:
-            raise UserError(f"{_where(spec, cs.id)}.unit: {exc}") from None
-        values[cs.id] = col.values * factor[0]
-        si_units[cs.id] = si[0]
-        if unit != si[0]:
+        unit, unit_from = _unit(spec, cs, col, topic)
+        si, factor = _si(spec, cs.id, topic, unit)
+        values[cs.id] = col.values * factor
+        si_units[cs.id] = si
+        if unit != si:
             conversions.append({"channel": cs.id, "topic": topic, "column": str(cs.column),
-                                "unit": unit, "si_unit": si[0], "factor": factor[0],
+                                "unit": unit, "si_unit": si, "factor": factor,
                                 "unit_from": unit_from})
 
     topics: dict = {}

@@ -187,7 +187,7 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
                 try:
                     float(x)
                 except ValueError:
-                    raw = table[pos[idx[c]]][i]
+                    raw = str(table[pos[idx[c]]][i])
                     why = "empty cell" if not raw.strip() else f"{raw!r} is not a number"
                     raise UserError(f"{path}: {label(i)} column {c!r}: {why} "
                                     f"(expected {what})") from None
@@ -195,7 +195,7 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
         return _finite(v, label, f"{path} column {c!r}")
 
     n = len(cells)
-    where = f"{path} time column {src.time.column!r}"
+    where = str(path)          # the time checks name the line; "time" is in their message
     if src.time.column is None:
         tl = uniform(n, src.time.rate_hz, src.time.start_ns or 0)
     elif src.time.absolute:
@@ -214,7 +214,7 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
                 try:
                     ns[i] = parse_time_text(x)
                 except ValueError:
-                    raise UserError(f"{path}: {label(i)} column {src.time.column!r}: {x!r} is not "
+                    raise UserError(f"{path}: {label(i)} column {src.time.column!r}: {str(x)!r} is not "
                                     "ISO 8601 date-time text nor epoch seconds") from None
             tl = analyse(int(ns[0]), (ns - ns[0]) * 1e-9, label, where)
     else:

@@ -82,7 +82,8 @@ def _spec_from_flags(args):
         doc["resample"] = True
     if args.position_start_m is not None:
         doc["position_start_m"] = args.position_start_m
-    return spec_from_dict(doc, "command line", Path("."), metadata=metadata_from_file(args.metadata))
+    return spec_from_dict(doc, "command line", Path("."), metadata=metadata_from_file(args.metadata),
+                          metadata_origin=args.metadata)
 
 
 def run(args) -> int:

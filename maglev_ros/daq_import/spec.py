@@ -276,7 +276,8 @@ def _merge_source(base: Any, over: Any) -> dict:
     return out
 
 
-def spec_from_dict(doc: Any, origin: str, base_dir: Path, metadata: Metadata | None = None) -> ImportSpec:
+def spec_from_dict(doc: Any, origin: str, base_dir: Path, metadata: Metadata | None = None,
+                   metadata_origin: str | None = None) -> ImportSpec:
     """Check an import spec document and resolve it (files relative to ``base_dir``).
 
     ``metadata``: already loaded metadata (flags); else the spec's ``metadata`` key is read."""
@@ -285,7 +286,7 @@ def spec_from_dict(doc: Any, origin: str, base_dir: Path, metadata: Metadata | N
         raise UserError(f"{origin}: the import spec is empty (see docs/import.md)")
     d = k.mapping(doc, "(top level)")
     k.only(d, _TOP_KEYS, "")
-    md_origin = origin
+    md_origin = metadata_origin or origin
     if metadata is None:
         if "metadata" not in d:
             raise k.fail("metadata", "missing (the metadata file: `maglev-ros metadata init`, filled in)")

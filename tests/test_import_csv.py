@@ -137,6 +137,15 @@ def test_messy_but_described_csv_imports_right(tmp_path, capsys):
             assert blocks[0].units == (("m/s^2",) * 2 if topic == GA else ("m",))
 
 
+def test_gaps_fail_refuses_a_gap_naming_the_line(tmp_path, capsys):
+    where = _write_messy(tmp_path / "run.csv", drop=(57,))
+    spec = _spec(tmp_path, _metadata(tmp_path), gaps="fail")
+    rc, _, err = _run(["import", str(spec), "--out", str(tmp_path / "bag")], capsys)
+    assert rc == 1 and "\n" not in err
+    assert f"line {where[58]}: gap of 0.002 s (~1 samples missing) before it (gaps: fail)" in err
+    assert not (tmp_path / "bag").exists()
+
+
 @pytest.mark.parametrize("fault, sample, message", [
     ({"dup": (120,)}, 120, "duplicated time"),
     ({"swap": 300}, 300, "time goes backwards"),

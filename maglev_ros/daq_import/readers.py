@@ -86,11 +86,10 @@ def _epoch_split(text: np.ndarray) -> tuple[int, np.ndarray]:
 
 def _numbers_from_numeric(values: np.ndarray, src: SourceSpec, label, where: str) -> Timeline:
     """Time base from a numeric time column (relative in its unit, or absolute epoch seconds)."""
-    t = np.asarray(values, dtype=np.float64)
     if np.issubdtype(np.asarray(values).dtype, np.datetime64):
         ns = np.asarray(values).astype("datetime64[ns]").astype(np.int64)
         return analyse(int(ns[0]), (ns - ns[0]) * 1e-9, label, where)
-    _finite(t, label, where)
+    t = _finite(np.asarray(values, dtype=np.float64), label, where)
     if src.time.absolute:
         base = int(np.floor(t[0]))
         return analyse(base * 1_000_000_000, t - base, label, where)
@@ -200,12 +199,13 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
         tl = uniform(n, src.time.rate_hz, src.time.start_ns or 0)
     elif src.time.absolute:
         s = text_of(src.time.column)
-        if all(ch in "0123456789.+-eE" for ch in s[0]) and "e" not in s[0].lower():
+        if all(ch in "0123456789.+-eE" for ch in s[0]):
             try:
                 base_ns, rel = _epoch_split(s)
-            except ValueError:
-                numbers(src.time.column, "epoch seconds")
-                raise
+            except ValueError:             # e.g. 1.7e9: plain floats (0.2 us at epoch scale)
+                v = numbers(src.time.column, "epoch seconds")
+                base = int(np.floor(v[0]))
+                base_ns, rel = base * 1_000_000_000, v - base
             tl = analyse(base_ns, rel, label, where)
         else:
             raw = np.char.strip(table[pos[idx[src.time.column]]])

@@ -52,7 +52,7 @@ def _write(path: Path, preamble: list[str], names: list[str], units: list[str], 
             fh.write(";".join(cells).replace(".", ",") + "\n")
 
 
-def export(bag_path: str, out_dir: str) -> tuple[Path, Path]:
+def export(bag_path: str, out_dir: str) -> tuple[Path, Path | None]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data, t_ns = {}, {}
@@ -85,14 +85,15 @@ def export(bag_path: str, out_dir: str) -> tuple[Path, Path]:
             cols.append(data[t].channel(ch) / unit_conversion(u)[1])
     run_csv = out / "run.csv"
     _write(run_csv, preamble, names, units, t0_ns, t_ns[fast[0]], cols)
-    pos_csv = out / "position.csv"
+    pos_csv = None
     if TOPIC_VEHICLE_POSITION in data:
+        pos_csv = out / "position.csv"
         p = data[TOPIC_VEHICLE_POSITION]
         chans = list(p.channels)
         _write(pos_csv, preamble, [column_name(c, "") for c in chans],
                [EXPORT_UNIT[c] for c in chans], t0_ns, t_ns[TOPIC_VEHICLE_POSITION],
                [p.channel(c) / unit_conversion(EXPORT_UNIT[c])[1] for c in chans])
-    print(f"wrote {run_csv} and {pos_csv} (first sample at {iso})")
+    print(f"wrote {run_csv}" + (f" and {pos_csv}" if pos_csv else "") + f" (first sample at {iso})")
     return run_csv, pos_csv
 
 

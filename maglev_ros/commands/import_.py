@@ -31,6 +31,8 @@ def add_arguments(p) -> None:
     simple.add_argument("--delimiter", help="CSV field delimiter (default ',' or ';' with --decimal ,)")
     simple.add_argument("--decimal", help="CSV decimal mark, '.' (default) or ','")
     simple.add_argument("--header-rows", type=int, help="CSV lines before the column names row")
+    simple.add_argument("--units-row", action="store_true",
+                        help="CSV: a units row follows the column names")
     simple.add_argument("--time-column", help="the time column (relative seconds unless --absolute-time)")
     simple.add_argument("--time-unit", help="unit of a relative time column (default s)")
     simple.add_argument("--absolute-time", action="store_true",
@@ -71,6 +73,8 @@ def _spec_from_flags(args):
         time["rate_hz"] = args.rate_hz
     if args.start is not None:
         time["start"] = args.start
+    if args.units_row:
+        src["units_row"] = True
     if time:
         src["time"] = time
     doc = {"source": src, "channels": {}}
@@ -94,9 +98,11 @@ def run(args) -> int:
         check_file(args.json, "--json")
     if Path(args.spec).suffix.lower() in (".yaml", ".yml"):
         given = [f"--{k.replace('_', '-')}" for k in _FLAG_ONLY if getattr(args, k) not in (None, False)]
-        if given or args.resample:
+        given += [f for f, on in (("--resample", args.resample), ("--units-row", args.units_row),
+                                  ("--absolute-time", args.absolute_time)) if on]
+        if given:
             raise UserError(f"{args.spec}: an import spec says everything itself; "
-                            f"{', '.join(given or ['--resample'])} belong(s) in the spec")
+                            f"{', '.join(given)} belong(s) in the spec")
         spec = load_spec(args.spec)
     else:
         spec = _spec_from_flags(args)

@@ -106,7 +106,11 @@ def _run(args, capsys):
     return rc, cap.out, cap.err.strip()
 
 
-def test_messy_but_described_csv_imports_right(tmp_path, capsys):
+@pytest.mark.parametrize("chunk_rows", [50_000, 64])
+def test_messy_but_described_csv_imports_right(tmp_path, capsys, monkeypatch, chunk_rows):
+    from maglev_ros.daq_import import readers
+
+    monkeypatch.setattr(readers, "_CSV_CHUNK_ROWS", chunk_rows)     # 64: the gap inside chunk 1
     where = _write_messy(tmp_path / "run.csv", drop=(57,))
     spec = _spec(tmp_path, _metadata(tmp_path))
     out, js = tmp_path / "bag", tmp_path / "imp.json"
@@ -153,7 +157,10 @@ def test_gaps_fail_refuses_a_gap_naming_the_line(tmp_path, capsys):
     ({"empty": 90}, 90, "column 'Acc G2 left': empty cell"),
     ({"short": 33}, 33, "4 fields, expected 5 (as in the names row)"),
 ])
-def test_broken_csv_fails_naming_the_line(tmp_path, capsys, fault, sample, message):
+def test_broken_csv_fails_naming_the_line(tmp_path, capsys, monkeypatch, fault, sample, message):
+    from maglev_ros.daq_import import readers
+
+    monkeypatch.setattr(readers, "_CSV_CHUNK_ROWS", 50)     # the faults lie in later chunks
     where = _write_messy(tmp_path / "run.csv", **fault)
     line = where[sample] + (1 if "dup" in fault else 0)
     if "swap" in fault:

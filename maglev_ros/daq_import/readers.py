@@ -74,14 +74,13 @@ def _finite(values: np.ndarray, label, where: str) -> np.ndarray:
     return values
 
 
-def _epoch_split(text: np.ndarray) -> tuple[int, np.ndarray]:
-    """Epoch seconds written as text -> (whole seconds of the first, seconds after it), parsing
-    whole and fractional digits apart (a float64 holds epoch seconds to 0.2 us only)."""
+def _epoch_parts(text: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Epoch seconds written as text -> (whole seconds, fraction), parsing whole and fractional
+    digits apart (a float64 holds epoch seconds to 0.2 us only); ValueError if not plain digits."""
     parts = np.char.partition(text, ".")
     whole = parts[:, 0].astype(np.int64)
     frac = np.char.add("0.", np.where(parts[:, 2] == "", "0", parts[:, 2])).astype(np.float64)
-    base = int(whole[0])
-    return base * 1_000_000_000, (whole - base).astype(np.float64) + frac
+    return whole, frac
 
 
 def _numbers_from_numeric(values: np.ndarray, src: SourceSpec, label, where: str) -> Timeline:
@@ -145,10 +144,12 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
                     raise UserError(f"{path}: no column {c!r} in the names row (line {skip + 1}); "
                                     f"columns: {shown}")
             need = max(idx.values()) + 1
+            cols = sorted(set(idx.values()))
+            pos = {j: k for k, j in enumerate(cols)}
+            width = len(names) if names is not None else None
+            conv = _CsvChunks(path, o["decimal"], src, idx, pos, columns)
             cells: list[list[str]] = []
             lines: list[int] = []
-            cols = sorted(set(idx.values()))
-            width = len(names) if names is not None else None
             for row in reader:
                 if not row or all(not c.strip() for c in row):
                     continue
@@ -159,26 +160,66 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
                                     f"{width or need}" + (" (as in the names row)" if width else ""))
                 cells.append([row[j] for j in cols])
                 lines.append(line())
+                if len(cells) == _CSV_CHUNK_ROWS:
+                    conv.add(cells, lines)
+                    cells, lines = [], []
+            if cells:
+                conv.add(cells, lines)
         except csv.Error as exc:
             raise UserError(f"{path}: line {skip + reader.line_num}: not valid CSV ({exc})") from None
         except UnicodeDecodeError as exc:
             raise UserError(f"{path}: not {o['encoding']} text ({exc.reason} at byte {exc.start}); "
                             "set source encoding (e.g. latin-1)") from None
-    if len(cells) < 2:
-        raise UserError(f"{path}: {len(cells)} data row(s) after the header; at least 2 are needed")
-    table = np.array(cells, dtype=str).T
-    pos = {j: k for k, j in enumerate(cols)}
-    line_no = np.asarray(lines)
+    n = conv.n
+    if n < 2:
+        raise UserError(f"{path}: {n} data row(s) after the header; at least 2 are needed")
+    line_no = np.concatenate(conv.lines)
 
     def label(i: int) -> str:
         return f"line {int(line_no[i])}"
 
-    def text_of(c) -> np.ndarray:
-        s = np.char.strip(table[pos[idx[c]]])
-        return np.char.replace(s, ",", ".") if o["decimal"] == "," else s
+    where = str(path)          # the time checks name the line; "time" is in their message
+    if src.time.column is None:
+        tl = uniform(n, src.time.rate_hz, src.time.start_ns or 0)
+    elif src.time.absolute and conv.time_kind == "iso":
+        ns = np.concatenate(conv.time)
+        tl = analyse(int(ns[0]), (ns - ns[0]) * 1e-9, label, where)
+    elif src.time.absolute:
+        whole = np.concatenate([w for w, _ in conv.time])
+        frac = np.concatenate([f for _, f in conv.time])
+        base = int(whole[0])
+        tl = analyse(base * 1_000_000_000, (whole - base).astype(np.float64) + frac, label, where)
+    else:
+        tl = analyse(src.time.start_ns or 0, np.concatenate(conv.time) * _time_factor(src), label, where)
+    out = {}
+    for c in columns:
+        unit = _clean_unit(units[idx[c]]) if units is not None and idx[c] < len(units) else None
+        out[c] = Column(np.concatenate(conv.values[c]), tl, unit, label, f"{path} column {c!r}")
+    return out
 
-    def numbers(c, what: str) -> np.ndarray:
-        s = text_of(c)
+
+_CSV_CHUNK_ROWS = 50_000      # rows held as text at a time: a long export is converted as it is read
+
+
+class _CsvChunks:
+    """Numbers (and the time column) of a CSV converted chunk by chunk, each problem named by
+    the file line of its row."""
+
+    def __init__(self, path, decimal: str, src: SourceSpec, idx: dict, pos: dict, columns) -> None:
+        self.path, self.decimal, self.src, self.idx, self.pos = path, decimal, src, idx, pos
+        self.columns = list(columns)
+        self.values: dict = {c: [] for c in self.columns}
+        self.time: list = []
+        self.lines: list = []
+        self.time_kind: str | None = None
+        self.n = 0
+
+    def _text(self, table, c) -> np.ndarray:
+        s = np.char.strip(table[self.pos[self.idx[c]]])
+        return np.char.replace(s, ",", ".") if self.decimal == "," else s
+
+    def _numbers(self, table, line_no, c, what: str) -> np.ndarray:
+        s = self._text(table, c)
         try:
             v = s.astype(np.float64)
         except ValueError:
@@ -186,44 +227,46 @@ def _read_csv(src: SourceSpec, columns: Sequence) -> dict:
                 try:
                     float(x)
                 except ValueError:
-                    raw = str(table[pos[idx[c]]][i])
+                    raw = str(table[self.pos[self.idx[c]]][i])
                     why = "empty cell" if not raw.strip() else f"{raw!r} is not a number"
-                    raise UserError(f"{path}: {label(i)} column {c!r}: {why} "
+                    raise UserError(f"{self.path}: line {int(line_no[i])} column {c!r}: {why} "
                                     f"(expected {what})") from None
             raise
-        return _finite(v, label, f"{path} column {c!r}")
+        return _finite(v, lambda i: f"line {int(line_no[i])}", f"{self.path} column {c!r}")
 
-    n = len(cells)
-    where = str(path)          # the time checks name the line; "time" is in their message
-    if src.time.column is None:
-        tl = uniform(n, src.time.rate_hz, src.time.start_ns or 0)
-    elif src.time.absolute:
-        s = text_of(src.time.column)
-        if all(ch in "0123456789.+-eE" for ch in s[0]):
-            try:
-                base_ns, rel = _epoch_split(s)
-            except ValueError:             # e.g. 1.7e9: plain floats (0.2 us at epoch scale)
-                v = numbers(src.time.column, "epoch seconds")
-                base = int(np.floor(v[0]))
-                base_ns, rel = base * 1_000_000_000, v - base
-            tl = analyse(base_ns, rel, label, where)
-        else:
-            raw = np.char.strip(table[pos[idx[src.time.column]]])
-            ns = np.empty(n, dtype=np.int64)
-            for i, x in enumerate(raw):
-                try:
-                    ns[i] = parse_time_text(x)
-                except ValueError:
-                    raise UserError(f"{path}: {label(i)} column {src.time.column!r}: {str(x)!r} is not "
-                                    "ISO 8601 date-time text nor epoch seconds") from None
-            tl = analyse(int(ns[0]), (ns - ns[0]) * 1e-9, label, where)
-    else:
-        tl = _numbers_from_numeric(numbers(src.time.column, "a time"), src, label, where)
-    out = {}
-    for c in columns:
-        unit = _clean_unit(units[idx[c]]) if units is not None and idx[c] < len(units) else None
-        out[c] = Column(numbers(c, "a number"), tl, unit, label, f"{path} column {c!r}")
-    return out
+    def add(self, cells: list, lines: list) -> None:
+        table = np.array(cells, dtype=str).T
+        line_no = np.asarray(lines, dtype=np.int64)
+        for c in self.columns:
+            self.values[c].append(self._numbers(table, line_no, c, "a number"))
+        tc = self.src.time.column
+        if tc is not None:
+            if not self.src.time.absolute:
+                self.time.append(self._numbers(table, line_no, tc, "a time"))
+            else:
+                s = self._text(table, tc)
+                if self.time_kind is None:
+                    self.time_kind = "epoch" if all(ch in "0123456789.+-eE" for ch in s[0]) else "iso"
+                if self.time_kind == "epoch":
+                    try:
+                        self.time.append(_epoch_parts(s))
+                    except ValueError:     # e.g. 1.7e9: plain floats (0.2 us at epoch scale)
+                        v = self._numbers(table, line_no, tc, "epoch seconds")
+                        w = np.floor(v).astype(np.int64)
+                        self.time.append((w, v - w))
+                else:
+                    raw = np.char.strip(table[self.pos[self.idx[tc]]])
+                    ns = np.empty(raw.size, dtype=np.int64)
+                    for i, x in enumerate(raw):
+                        try:
+                            ns[i] = parse_time_text(str(x))
+                        except ValueError:
+                            raise UserError(f"{self.path}: line {int(line_no[i])} column {tc!r}: "
+                                            f"{str(x)!r} is not ISO 8601 date-time text nor epoch "
+                                            "seconds") from None
+                    self.time.append(ns)
+        self.lines.append(line_no)
+        self.n += line_no.size
 
 
 # ----------------------------------------------------------------------------------- TDMS

@@ -162,6 +162,11 @@ def test_si_units_accepted(unit):
     ("mm/s", "m/s", 0.001),
     ("km/h", "m/s", 1000.0 / 3600.0),
     ("um", "m", 1e-6),
+    ("cm/s^2", "m/s^2", 0.01),
+    ("mm/s^2", "m/s^2", 0.001),
+    ("m/s2", "m/s^2", 1.0),             # DAQ spellings of the SI unit itself
+    ("m/s²", "m/s^2", 1.0),
+    ("μm", "m", 1e-6),                  # Greek mu as well as the micro sign
 ])
 def test_non_si_units_known_factor(unit, si, factor):
     assert not C.is_si_unit(unit)

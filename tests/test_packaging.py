@@ -37,11 +37,14 @@ ROSDEP_KEY = {
     "launch": "launch", "launch_ros": "launch_ros", "maglev_msgs": "maglev_msgs",
     "diagnostic_msgs": "diagnostic_msgs",
     "rcl_interfaces": "rcl_interfaces",
+    "h5py": "python3-h5py",
 }
 # imported only when installed (guarded import) and without a rosdep key: pip brings it
 # (foxglove: foxglove-sdk, the live view's server, from requirements.txt; the node says so in one
 # line when it is missing)
-OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove"}
+# npTDMS, asammdf: the import's TDMS and MDF4 readers, imported when such a file is read, with one
+# line saying how to get them when missing; no rosdep key in rosdistro (2026-08), pip brings them
+OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove", "nptdms", "asammdf"}
 # what pip installs for the science core; the ROS side comes from requirements.txt
 PIP_NAME = {"yaml": "pyyaml"}
 

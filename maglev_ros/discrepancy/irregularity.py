@@ -51,13 +51,15 @@ def sensor_delay_s(metadata) -> float:
     return max(0.0, float(d))
 
 
-def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, spacing_m: float = 0.02,
+def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float | None = 0.8, spacing_m: float | None = None,
                            margin_m: float = 1.0, max_iterations: int = 3, denoise: bool = True,
                            log=None, **profile_kw) -> Recording:
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
-    with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
-    what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets).
+    with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: the Wiener
+    gain of the rail and error spectra measured on the pass (:mod:`maglev_ros.irregularity.denoise`;
+    needs two or more magnets). ``spacing_m`` None: the grid follows the data (one sample step at the
+    top speed, at most 2 cm; :func:`~maglev_ros.irregularity.twin_input.twin_spacing_m`).
     Further keywords (``band_factor``, ``trim_wavelengths``, ``edge_s``, ...) go to
     :func:`~maglev_ros.irregularity.twin_input.profile_for_twin` and its profiler."""
     from maglev_ros.contract import metadata_from_dict

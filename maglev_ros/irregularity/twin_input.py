@@ -16,8 +16,13 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
 3. **Band for the twin.** The twin's magnets are point forces: the magnet accelerations come
    from the SHORT waves (at 25 km/h a 0.5 m wave is 14 Hz). So ``magnet_length_m`` is 0 here and
    the shortest wavelength is set by sampling and grid only:
-   ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)`` (default spacing 0.02 m; override
-   with ``min_wavelength_m``). Because the reconstruction uses the same point-sensor convention
+   ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)``. The grid follows the data
+   (``spacing_m`` None): one sample step at the top speed, ``v_max / fs``, at most
+   ``DEFAULT_SPACING_M`` (2 cm), when two or more magnets measure (their difference measures the
+   noise that the twin input's gain then removes, :meth:`TwinIrregularity.denoised_twin_input`);
+   2 cm with one. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
+   a foreign simulator's rail still had its stator-pack waves; the twin's magnet misfit there grew
+   from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``. Because the reconstruction uses the same point-sensor convention
    as the twin, the result is the *effective* irregularity the twin needs (as is the geometry
    product of :class:`InertialProfiler`, also point sensors by default, on its coarser grid).
    The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
@@ -73,7 +78,9 @@ from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
-           "twin_deflection"]
+           "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M"]
+
+DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,16 +110,30 @@ class TwinIrregularity:
         return self.position_m, self.irregularity_m
 
     def denoised_twin_input(self):
-        """(x, r, gain): the twin input keeping only what the magnets agree on (coherent Wiener gain,
-        :mod:`maglev_ros.irregularity.denoise`); ``gain`` is None and r unchanged with one magnet or
-        too short a common stretch. The diagnosis and the model updating (offline and online) drive
-        the twin with this: the raw mean carries short waves the magnets do not agree on (gap noise),
-        which the twin turned into magnet accelerations 10-1000x the measured ones at 60-110 Hz."""
-        from .denoise import apply_gain, coherent_gain
-        g = coherent_gain(self.result.magnet_profiles_m, self.spacing_m)
+        """(x, r, gain): the twin input with the Wiener gain of the spectra measured on this pass
+        (:func:`maglev_ros.irregularity.denoise.rail_gain`: the rail's, and each magnet's own error
+        from the magnets' difference), for the number of magnets averaged at each point (one where
+        a single magnet measured). ``gain`` is None with one magnet or too short a common stretch;
+        r is then band-limited at the shortest wave of the default grid (4 x ``DEFAULT_SPACING_M``).
+        The diagnosis and the model updating (offline and online) drive the twin with this: the raw
+        mean carries short waves the magnets do not agree on (gap noise), which the twin turned into
+        magnet accelerations 10-1000x the measured ones at 60-110 Hz."""
+        from .denoise import apply_rail_gain, magnets_averaged, rail_gain
+        res = self.result
+        g = rail_gain(res.magnet_profiles_m, self.spacing_m)
         if g is None:
-            return self.position_m, self.irregularity_m, None
-        return self.position_m, apply_gain(self.irregularity_m, self.spacing_m, g), g
+            return self.position_m, self._lowpassed(4 * DEFAULT_SPACING_M), None
+        ramp = max(1, int(round(0.25 * res.max_wavelength_m / self.spacing_m)))   # the profiler's blend
+        n_eff = np.ones(self.position_m.size)
+        i0 = int(round((res.position_m[0] - self.position_m[0]) / self.spacing_m))
+        n_eff[i0:i0 + res.position_m.size] = magnets_averaged(res.magnet_profiles_m, ramp)
+        return self.position_m, apply_rail_gain(self.irregularity_m, self.spacing_m, g, n_eff), g
+
+    def _lowpassed(self, min_wavelength_m: float) -> np.ndarray:
+        if min_wavelength_m <= self.min_wavelength_m * (1 + 1e-9):
+            return self.irregularity_m
+        sos = signal.butter(self.filter_order, 1.0 / min_wavelength_m, fs=1.0 / self.spacing_m, output="sos")
+        return signal.sosfiltfilt(sos, self.irregularity_m)
 
     @property
     def valid_range_m(self) -> tuple[float, float]:
@@ -279,8 +300,20 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
     return x, r, valid
 
 
+def twin_spacing_m(accel, position, n_magnets: int) -> float:
+    """Grid of the twin input [m]: one sample step at the top speed when two or more magnets measure
+    (the finest the data resolve; their noise is then measured and removed), never coarser than
+    ``DEFAULT_SPACING_M``; that with one magnet."""
+    if n_magnets < 2:
+        return DEFAULT_SPACING_M
+    _, _, spd = _position_arrays(position)
+    fs = getattr(accel, "sample_rate_hz", None) or 1.0 / float(np.median(np.diff(np.asarray(accel.time_s, float))))
+    v_top = float(np.max(np.abs(spd)))
+    return DEFAULT_SPACING_M if not v_top > 0 else min(DEFAULT_SPACING_M, v_top / float(fs))
+
+
 def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=None, *,
-                     highpass_hz: float | None = 0.8, spacing_m: float = 0.02,
+                     highpass_hz: float | None = 0.8, spacing_m: float | None = None,
                      min_wavelength_m: float | None = None, max_wavelength_m: float | None = None,
                      band_speed_mps: float | None = None, magnets: Sequence[int] | None = None,
                      channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
@@ -296,8 +329,9 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     (``TwinConfig`` and the metadata ``line`` block / spans) whose deflection is removed.
     ``max_iterations``: twin runs at most (0 returns the loaded profile, tagged as such in the
     warnings). ``highpass_hz`` None: the corner follows the pass as the irregularity verb chooses it
-    (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. Extra keyword
-    arguments go to :class:`InertialProfiler`.
+    (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. ``spacing_m``
+    None: the grid follows the data (:func:`twin_spacing_m`). Extra keyword arguments go to
+    :class:`InertialProfiler`.
     """
     offs, g0, pairs = _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs)
     if highpass_hz is not None and not highpass_hz > 0:
@@ -305,6 +339,10 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     if not (max_iterations >= 0):
         raise UserError(f"max_iterations: expected >= 0, got {max_iterations}")
     tau = float(sensor_delay_s)
+    if spacing_m is None:
+        n_mag = len([m for m in (pairs or {}) if magnets is None or m in magnets]) if pairs else \
+            min(len(accel.channels), len(gap.channels), len(offs))
+        spacing_m = twin_spacing_m(accel, position, n_mag)
     pos_sh = _cd(np.asarray(position.time_s, float) + tau, position.data, position.channels,
                  getattr(position, "sample_rate_hz", None))
     prof = InertialProfiler(highpass_hz=highpass_hz, spacing_m=spacing_m, magnets=magnets,

@@ -52,6 +52,10 @@ class DiagnoseConfig:
     irregularity_band_factor: float = 1.0
     irregularity_trim_wavelengths: float = 0.5
     irregularity_edge_s: float | None = None
+    # passes over one line share their short waves (every pass's magnets average the same rail: half
+    # the noise with two passes; a foreign clean case's twin floor at its true parameters 0.110 -> 0.102);
+    # kept apart when the passes differ by more than their noise (another rail, a position shift)
+    irregularity_shared: bool = True
     base_refit_nfev: int = 4          # calibration steps after the irregularity is rebuilt
     # besides the n_top best-screened: the best of every further effect and every girder/bearing
     # hypothesis of the spans the strongest guideway mismatches name (False: the n_top only)

@@ -78,7 +78,7 @@ from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
-           "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M"]
+           "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M", "SharedRail", "shared_twin_inputs"]
 
 DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
 
@@ -287,7 +287,12 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
     valid = np.zeros(n, bool)
     valid[npad:npad + ok.size] = ok
     r[npad:npad + ok.size] = np.where(ok, res.irregularity_m, 0.0)
-    nt = int(round(taper_m / dx))
+    return x, r * _taper_weights(valid, int(round(taper_m / dx))), valid
+
+
+def _taper_weights(valid: np.ndarray, nt: int) -> np.ndarray:
+    """1 inside each valid stretch, a half-cosine ramp over its first and last ``nt`` points, 0 outside."""
+    w = valid.astype(float)
     if nt > 1:
         m = np.concatenate([[False], valid, [False]])
         d = np.diff(m.astype(np.int8))
@@ -295,9 +300,9 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
             k = min(nt, (i1 - i0) // 2)
             if k > 1:
                 ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
-                r[i0:i0 + k] *= ramp
-                r[i1 - k:i1] *= ramp[::-1]
-    return x, r, valid
+                w[i0:i0 + k] *= ramp
+                w[i1 - k:i1] *= ramp[::-1]
+    return w
 
 
 def twin_spacing_m(accel, position, n_magnets: int) -> float:
@@ -478,3 +483,129 @@ def accel_nrmse(accel, prediction, twin_irregularity: TwinIrregularity, config, 
     return {"nrmse": tot, "per_channel": per, "band_hz": [float(band_hz[0]), float(band_hz[1])],
             "filter": "butterworth order 4 band-pass, zero-phase (sosfiltfilt), on both signals",
             "window_s": float(win.sum() / fs), "n_samples": int(win.sum())}
+
+
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SharedRail:
+    """How the passes over one line shared their short waves (:func:`shared_twin_inputs`)."""
+    used: bool
+    reason: str
+    n_passes: int
+    n_profiles: int                      # magnet profiles of every pass that were averaged
+    split_wavelength_m: float | None     # shorter waves from every pass, longer from each pass itself
+    noise_ratio: float | None            # error spectrum between / within passes, median where shared
+    noise_ratio_limit: float | None
+    gain: Any = None                     # the RailGain of all profiles
+
+    def to_dict(self) -> dict:
+        return {"used": self.used, "reason": self.reason, "n_passes": self.n_passes,
+                "n_profiles": self.n_profiles, "split_wavelength_m": self.split_wavelength_m,
+                "noise_ratio_between_passes": self.noise_ratio, "noise_ratio_limit": self.noise_ratio_limit,
+                "gain": None if self.gain is None else self.gain.to_dict()}
+
+
+def _complement_lowpass(r: np.ndarray, spacing_m: float, wavelength_m: float) -> np.ndarray:
+    """Zero-phase low-pass with gain 1 / (1 + (k wavelength)^8) (r minus it: the matching high-pass)."""
+    n = 1 << int(np.ceil(np.log2(2 * r.size)))
+    k = np.fft.rfftfreq(n, spacing_m)
+    return np.fft.irfft(np.fft.rfft(r, n) / (1.0 + (k * wavelength_m) ** 8), n)[:r.size]
+
+
+def shared_twin_inputs(tis: Sequence[TwinIrregularity]) -> tuple[list[tuple[np.ndarray, np.ndarray]], SharedRail]:
+    """The twin inputs of several passes over ONE line, each with its short waves measured by every
+    pass's magnets: the same rail seen by twice the magnets carries half the noise.
+
+    Each pass keeps its own denoised input (:meth:`TwinIrregularity.denoised_twin_input`) for waves
+    longer than ``split``, the longest wave every pass keeps at full gain (the passes' bands differ
+    at their long ends: their corners and speeds); shorter waves come from the mean of every pass's magnet profiles on their common grid, with the
+    Wiener gain of all of them, inside the pass's own valid stretch (its tapers, valid range and long
+    waves unchanged). A wave is shared only where the passes measured the same rail at the same
+    positions: where the error spectrum between two passes' magnets exceeds the one within a pass by
+    less than the error the wider mean removes (a shift in position, or a rail that changed, shows as
+    a larger difference between the passes where the rail is strong). Elsewhere each pass keeps its own."""
+    from .denoise import _smooth_relative, _welch_runs, apply_rail_gain, magnets_averaged, rail_gain
+    own = [ti.denoised_twin_input()[:2] for ti in tis]
+
+    def keep(reason, **kw):
+        return own, SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit"))
+    if len(tis) < 2:
+        return keep("one pass")
+    dx = tis[0].spacing_m
+    if any(abs(ti.spacing_m - dx) > 1e-9 * dx for ti in tis):
+        return keep("the passes' grids differ")
+    n_own = [ti.result.magnet_profiles_m.shape[0] for ti in tis]
+    if min(n_own) < 2:
+        return keep("a pass with one magnet: its own error spectrum is not measured")
+    # the split: the longest wave every pass keeps at full gain, v / (2 f_c), half its stated longest
+    # at band factor 1 (the passes' bands differ at their long ends only: their corners and speeds)
+    split = min(ti.band_speed_mps / (2.0 * ti.highpass_hz) for ti in tis)
+    j = [int(round(ti.result.position_m[0] / dx)) for ti in tis]
+    j0 = min(j)
+    n = max(jj + ti.result.position_m.size for jj, ti in zip(j, tis)) - j0
+    rows, owner = [], []
+    for p, (jj, ti) in enumerate(zip(j, tis)):
+        for prof in ti.result.magnet_profiles_m:
+            row = np.full(n, np.nan)
+            row[jj - j0:jj - j0 + prof.size] = prof
+            rows.append(row)
+            owner.append(p)
+    rows = np.array(rows)
+    nps = 256
+    within = [rows[a] - rows[b] for a in range(len(rows)) for b in range(a + 1, len(rows)) if owner[a] == owner[b]]
+    between = [rows[a] - rows[b] for a in range(len(rows)) for b in range(a + 1, len(rows)) if owner[a] != owner[b]]
+    k, w_psd, nw = _welch_runs(within, 1.0 / dx, nps)
+    _, b_psd, nb = _welch_runs(between, 1.0 / dx, nps)
+    # a wave is shared where the passes' disagreement Delta = 2 (b - w) (b, w: the error spectra between
+    # and within passes) adds less error to the shared mean, f^2 Delta with f the other passes' share
+    # of it, than the wider mean removes, w (1 / n_own - 1 / n_all): b / w below the limit
+    n_min, n_all = min(n_own), len(rows)
+    f = 1.0 - n_min / n_all
+    limit = 1.0 + (1.0 / n_min - 1.0 / n_all) / (2.0 * f * f)
+    if k is None or b_psd is None:
+        return keep("the passes measured no common stretch long enough to compare", split=split, limit=limit)
+    w_s, cnt = _smooth_relative(k, w_psd, 0.25)
+    b_s, _ = _smooth_relative(k, b_psd, 0.25)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio_k = b_s / w_s
+    # the ratio must clear the limit by two of its standard errors (Welch averages of nb, nw segments)
+    se_k = ratio_k * np.sqrt(1.0 / (nb * cnt) + 1.0 / (nw * cnt))
+    short = (k >= 1.0 / split) & np.isfinite(ratio_k)
+    shared_k = short & (ratio_k + 2.0 * se_k <= limit)
+    if not shared_k.any():
+        return keep(f"the passes differ by more than their noise at every wave shorter than {split:.3g} m "
+                    f"(between / within a pass {np.nanmin(ratio_k[short]) if short.any() else np.nan:.2f} "
+                    f"or more, limit {limit:.2f}): not one rail at one position", split=split, limit=limit)
+    ratio = float(np.median(ratio_k[shared_k]))
+    g = rail_gain(rows, dx)
+    if g is None:
+        return keep("no error spectrum measured", split=split, ratio=ratio, limit=limit)
+    from .profile import _coverage_weights
+    ramp = max(1, int(round(0.25 * min(ti.result.max_wavelength_m for ti in tis) / dx)))
+    W = _coverage_weights(np.isfinite(rows), ramp)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_all = np.sum(W * np.nan_to_num(rows), axis=0) / np.sum(W, axis=0)
+    n_all = magnets_averaged(rows, ramp)
+    out = []
+    for jj, ti, (x, r_own) in zip(j, tis, own):
+        res = ti.result
+        sl = slice(jj - j0, jj - j0 + res.position_m.size)
+        nt = int(round(ti.taper_m / dx))
+        # every pass's mean where this pass measured (its own ramps at the ends), with the gain of all
+        # the profiles; only its waves shorter than the split replace the pass's own: those of the
+        # difference, which is small and tapered like the pass's input (no step for the filter to ring on)
+        m = np.where(res.valid & np.isfinite(mean_all[sl]), mean_all[sl], res.irregularity_m)
+        i0 = int(round((res.position_m[0] - x[0]) / dx))
+        r_all = np.zeros(x.size)
+        r_all[i0:i0 + m.size] = np.where(res.valid, m, 0.0)
+        n_eff = np.ones(x.size)
+        n_eff[i0:i0 + m.size] = np.where(res.valid, n_all[sl], 1.0)
+        diff = apply_rail_gain(r_all * _taper_weights(ti.valid, nt), dx, g, n_eff) - r_own
+        nfft = 1 << int(np.ceil(np.log2(2 * diff.size)))
+        kf = np.fft.rfftfreq(nfft, dx)
+        H = (1.0 - 1.0 / (1.0 + (kf * split) ** 8)) * np.interp(kf, k, shared_k.astype(float))
+        out.append((x, r_own + np.fft.irfft(np.fft.rfft(diff, nfft) * H, nfft)[:diff.size]))
+    lam = 1.0 / k[shared_k]
+    return out, SharedRail(True, f"one rail: the passes differ by their noise only at {lam.min():.3g}-{lam.max():.3g} m "
+                                 f"({shared_k.sum()} of {short.sum()} wavenumbers shorter than the split)",
+                           len(tis), len(rows), split, ratio, limit, g)

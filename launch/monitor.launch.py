@@ -1,25 +1,44 @@
 """ROS 2 launch file of the monitor graph, for users with a full ROS 2 install.
 
-    ros2 launch maglev_ros monitor.launch.py bag:=/path/to/recording.mcap rate:=1.0
+    ros2 launch maglev_ros monitor.launch.py bag:=/path/to/recording.mcap rate:=2.0 namespace:=/line1
 
-The graph itself is data in maglev_ros.launch_graph, shared with ``maglev-ros launch monitor``.
+The same graph as ``maglev-ros launch monitor`` with the same arguments (bag, rate, fast,
+params_file, namespace, use_sim_time, out, history, linger_s: maglev_ros.launch_graph's
+LAUNCH_ARGUMENTS): every node's parameters, namespace and remappings, and the replay's start-up
+gating (it waits for the graph's other nodes and a subscriber on every data topic), come from
+maglev_ros.launch_graph.node_launches, which our launcher uses too.
 """
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from maglev_ros.launch_graph import GRAPHS
+from maglev_ros.launch_graph import LAUNCH_ARGUMENTS, launch_overrides, node_launches
+
+
+def _nodes(context, *args, **kwargs):
+    def arg(name: str) -> str:
+        return LaunchConfiguration(name).perform(context)
+
+    def flag(name: str) -> bool:
+        return arg(name).strip().lower() in ("true", "1", "yes")
+
+    overrides = launch_overrides(rate=float(arg("rate")), fast=flag("fast"), out=arg("out"),
+                                 history=arg("history") or None)
+    nodes = []
+    for nl in node_launches("monitor", bag=arg("bag") or None, overrides=overrides,
+                            params_file=arg("params_file") or None, namespace=arg("namespace"),
+                            use_sim_time=flag("use_sim_time"), linger_s=float(arg("linger_s")),
+                            results_timeout_s=float(arg("results_timeout_s"))):
+        # a params file first, then the computed parameters (they win, as -p after --params-file)
+        parameters = ([nl.params_file] if nl.params_file else []) + [nl.params]
+        nodes.append(Node(package="maglev_ros", executable=nl.name, name=nl.name,
+                          namespace=nl.namespace or None, parameters=parameters,
+                          remappings=list(nl.remaps), output="screen"))
+    return nodes
 
 
 def generate_launch_description():
-    args = [DeclareLaunchArgument("bag", default_value=""),
-            DeclareLaunchArgument("rate", default_value="1.0")]
-    nodes = []
-    for spec in GRAPHS["monitor"]:
-        params = dict(spec.params)
-        if spec.needs_bag:
-            params.update(bag=LaunchConfiguration("bag"), rate=LaunchConfiguration("rate"))
-        nodes.append(Node(package="maglev_ros", executable=spec.name, name=spec.name,
-                          parameters=[params], output="screen"))
-    return LaunchDescription(args + nodes)
+    args = [DeclareLaunchArgument(name, default_value=default, description=text)
+            for name, default, text in LAUNCH_ARGUMENTS]
+    return LaunchDescription(args + [OpaqueFunction(function=_nodes)])

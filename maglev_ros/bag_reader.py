@@ -103,6 +103,27 @@ class ChannelData:
     def unit(self, name: str) -> str:
         return self.units[self.channels.index(name)]
 
+    @classmethod
+    def from_blocks(cls, topic: str, blocks) -> "ChannelData":
+        """A topic from its streamed blocks (``sensor_block.Block``, already in SI), as
+        :meth:`BagReader.read_topic` makes it of the same blocks in a bag: sorted by stamp, an exact
+        repeat of a stamp dropped, blocks with another channel list than the first left out, sample
+        times stamp + j / rate in float64 (overlapping blocks are not trimmed here)."""
+        bs = sorted((b for b in blocks if b.n_samples), key=lambda b: b.stamp_ns)
+        bs = [b for i, b in enumerate(bs) if i == 0 or b.stamp_ns != bs[i - 1].stamp_ns]
+        if not bs:
+            raise UserError(f"{topic}: no samples received")
+        chans, units = bs[0].channels, bs[0].units
+        bs = [b for b in bs if b.channels == chans]
+        n = np.array([b.n_samples for b in bs])
+        idx = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        rates = np.repeat([float(b.sample_rate_hz) for b in bs], n)
+        stamps_s = np.asarray([b.stamp_ns for b in bs], dtype=np.int64) * 1e-9
+        time_s = np.repeat(stamps_s, n) + idx / rates
+        rate = Counter(float(b.sample_rate_hz) for b in bs).most_common(1)[0][0]
+        data = np.concatenate([np.asarray(b.data, np.float64) for b in bs])
+        return cls(topic, tuple(chans), tuple(units), float(rate), time_s, data)
+
     def delayed_by(self, delay_s: float) -> "ChannelData":
         """The same samples with ``time_s`` moved back by an acquisition delay (the time each
         sample describes, see Metadata.acquisition_delay_s); self when the delay is 0."""

@@ -1,14 +1,22 @@
 """A small process launcher for the node graph (``ros2 launch`` is not on PyPI; no rclpy here).
 
 Starts each node of a graph as its own process, prefixes their output with the node name,
-stops them all on Ctrl-C, and, when a finite replay ends, gives the others ``linger_s`` to
-finish and then stops them too.
+stops them all on Ctrl-C, and stops them too when a finite replay has ended.
 
-A replay in the graph publishes its latched metadata only when every other node of the graph is
-up (``wait_nodes``: no node's idle timer starts early) and its data only when every data topic
-has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` = 60 s (process
-start-up and imports take seconds on a loaded machine), so no node misses the beginning; it stays alive during the
-linger (``linger_s``), so its latched metadata stays available to late joiners.
+What each node gets (parameters, namespace, remappings) is ``launch_graph.node_launches``, shared
+with the ROS 2 launch file. With a ``namespace`` every node runs in it (``-r __ns:=NS``, ``/clock``
+remapped to ``NS/clock``): two graphs run side by side on one ROS domain.
+
+A replay in the graph (one or several recordings, ``bags``) publishes its latched metadata only
+when every other node of the graph is up and, if it takes part in the run protocol
+(``maglev_ros.nodes._lifecycle``), warm (``wait_nodes``), and its data only when every data topic
+has a subscriber (``wait_subscribers`` 1), each at most ``wait_timeout_s`` (``WAIT_TIMEOUT_S``:
+process start-up, imports and kernel compilation take a while on a loaded machine), so no node
+misses the beginning. After each recording it waits until every node that takes part has
+published that recording's results (at most ``results_timeout_s``), so when it exits the graph's
+work is done: nodes that end by themselves (``NodeSpec.finishes``, the demo's summary) are given
+``FINISH_TIMEOUT_S`` to end, then the rest is stopped. ``linger_s`` is extra time the replay stays
+alive after its last recording (its latched metadata stays available to late joiners).
 
 Every node process is watched. A node that ends with a non-zero code or by a signal (kill -9), or
 a node that runs until stopped (``NodeSpec.runs_until_stopped``) ending at all, while the graph
@@ -27,9 +35,10 @@ import time
 from dataclasses import dataclass
 
 from maglev_ros.errors import UserError
-from maglev_ros.launch_graph import NodeSpec, graph, ros_param_args
+from maglev_ros.launch_graph import NodeSpec, node_launches, ros_args
 
 STOP_TIMEOUT_S = 5.0
+FINISH_TIMEOUT_S = 60.0
 # exit codes of a node stopped by SIGINT: 0 from run_node; 130 / -SIGINT from Python when the
 # signal came before the node installed its handler (still importing)
 _STOPPED_CLEANLY = (0, 130, -signal.SIGINT)
@@ -68,29 +77,33 @@ def _pump(name: str, stream, out) -> None:
         out.flush()
 
 
+def command_lines(graph_name: str, bag: str | None = None, overrides: dict | None = None,
+                  params_file: str | None = None, linger_s: float = 2.0, namespace: str = "",
+                  use_sim_time: bool = False, extra: list[NodeSpec] = (), bags: list[str] | None = None,
+                  results_timeout_s: float | None = None) -> list[tuple[NodeSpec, list[str]]]:
+    """(spec, command line) of every node :func:`launch` starts with these arguments."""
+    return [(nl.spec, [sys.executable, "-u", "-m", nl.module, *ros_args(nl)])
+            for nl in node_launches(graph_name, bag=bag, overrides=overrides, params_file=params_file,
+                                    namespace=namespace, use_sim_time=use_sim_time, linger_s=linger_s,
+                                    extra=extra, bags=bags, results_timeout_s=results_timeout_s)]
+
+
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
-           params_file: str | None = None, linger_s: float = 30.0, env: dict | None = None,
-           out=sys.stderr, on_started=None, extra: list[NodeSpec] = ()) -> int:
-    """Run a graph until its replay ends. Returns 0 when every node ran and ended as it should,
-    130 on Ctrl-C; raises :class:`GraphFailure` (after stopping the graph) when a node failed."""
-    overrides = overrides or {}
+           params_file: str | None = None, linger_s: float = 2.0, env: dict | None = None,
+           out=sys.stderr, on_started=None, extra: list[NodeSpec] = (), namespace: str = "",
+           use_sim_time: bool = False, bags: list[str] | None = None,
+           results_timeout_s: float | None = None) -> int:
+    """Run a graph until its replay of ``bag`` (or ``bags``, in order) has ended and the graph's
+    results are out. Returns 0 when every node ran and ended as it should, 130 on Ctrl-C; raises
+    :class:`GraphFailure` (after stopping the graph) when a node failed."""
     procs: list[Running] = []
     failures: list[str] = []
     penv = dict(os.environ if env is None else env)
-    specs = [s for s in list(graph(graph_name)) + list(extra) if bag or not s.needs_bag]
-    others = [s.name for s in specs if not s.needs_bag]
+    cmds = command_lines(graph_name, bag=bag, overrides=overrides, params_file=params_file, linger_s=linger_s,
+                         namespace=namespace, use_sim_time=use_sim_time, extra=extra, bags=bags,
+                         results_timeout_s=results_timeout_s)
     try:
-        for spec in specs:
-            params = dict(spec.params)
-            if spec.needs_bag:
-                params["bag"] = os.path.abspath(bag)
-                params.update({"wait_nodes": others, "wait_subscribers": 1, "wait_timeout_s": 60.0,
-                               "linger_s": float(linger_s)})
-            params.update(overrides.get(spec.name, {}))
-            cmd = [sys.executable, "-u", "-m", spec.module, "--ros-args", "-r", f"__node:={spec.name}"]
-            if params_file:
-                cmd += ["--params-file", params_file]
-            cmd += ros_param_args(params)
+        for spec, cmd in cmds:
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     text=True, env=penv, start_new_session=True)
             pump = threading.Thread(target=_pump, args=(spec.name, proc.stdout, out), daemon=True)
@@ -99,6 +112,7 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
         if on_started is not None:
             on_started()
         replay = next((r for r in procs if r.spec.needs_bag), None)
+        replay_ended = False
         while True:
             dead = [r for r in procs if _ended_wrongly(r)]
             if dead:
@@ -108,8 +122,12 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
                                     f"while the graph was running")
                     out.write(f"[launch] {failures[-1]}: stopping the graph\n")
                 break
+            if replay_ended:
+                break
             if replay is not None and replay.proc.poll() is not None:
-                break                               # it lingered (linger_s) before exiting
+                _await_finishers(procs, out)        # the replay ends once the results are out
+                replay_ended = True
+                continue                            # a node that failed meanwhile is still named
             if replay is None and all(r.proc.poll() is not None for r in procs):
                 break
             time.sleep(0.1)
@@ -135,6 +153,21 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
         more = f" (and {len(failures) - 1} more, see above)" if len(failures) > 1 else ""
         raise GraphFailure(failures[0] + more)
     return 0
+
+
+def _await_finishers(procs: list[Running], out) -> None:
+    """Give the nodes that end by themselves (the demo's summary) time to end, watching for failures."""
+    deadline = time.monotonic() + FINISH_TIMEOUT_S
+    waiting = [r for r in procs if r.spec.finishes]
+    while any(r.proc.poll() is None for r in waiting):
+        if time.monotonic() > deadline:
+            names = ", ".join(r.spec.name for r in waiting if r.proc.poll() is None)
+            out.write(f"[launch] {names} did not end within {FINISH_TIMEOUT_S:g} s of the replay's end: "
+                      f"stopping the graph\n")
+            return
+        if any(_ended_wrongly(r) for r in procs):
+            return                                  # the caller's next check names it
+        time.sleep(0.1)
 
 
 def stop_all(procs: list[Running], timeout_s: float = STOP_TIMEOUT_S) -> None:

@@ -30,9 +30,9 @@ def check_rate(rate: float | None) -> float | None:
 class ReplayClock:
     """Maps bag time [ns] to monotonic wall time [s] for a replay at ``rate``.
 
-    ``start(bag_ns)`` anchors bag time ``bag_ns`` to now; ``wall_due(bag_ns)`` is the monotonic
-    time at which a message of bag time ``bag_ns`` should go out; ``pause()``/``resume()`` hold
-    bag time still in between.
+    ``start(bag_ns)`` anchors bag time ``bag_ns`` to now (also a seek); ``wall_due(bag_ns)`` is the
+    monotonic time at which a message of bag time ``bag_ns`` should go out; ``pause()``/``resume()``
+    hold bag time still in between; ``set_rate`` changes the rate from the current bag time on.
     """
 
     rate: float | None = 1.0
@@ -62,6 +62,15 @@ class ReplayClock:
         if self._paused_at_s is not None:
             self._anchor_wall_s += self.now() - self._paused_at_s
             self._paused_at_s = None
+
+    def set_rate(self, rate: float | None, bag_ns: int | None = None) -> None:
+        """Go on at ``rate`` from bag time ``bag_ns`` (default: now's), with no jump in bag time."""
+        rate = check_rate(rate)
+        at = self.bag_now_ns() if bag_ns is None else int(bag_ns)
+        self.rate = rate
+        self._anchor_bag_ns = at
+        # while paused the anchor is the pause's start: resume() adds the time spent paused
+        self._anchor_wall_s = self._paused_at_s if self._paused_at_s is not None else self.now()
 
     def wall_due(self, bag_ns: int) -> float:
         """Monotonic wall time at which bag time ``bag_ns`` is due (now if as fast as possible)."""

@@ -682,3 +682,14 @@ def write_case_bags(case: Case, directory) -> tuple[str, list[str]]:
         write_recording_bag(p, q)
         ps.append(str(q))
     return str(amb), ps
+
+
+def report_science(rep: dict) -> dict:
+    """What a diagnosis report found, without what names the recordings (bag path vs live stream):
+    the live and the offline diagnosis of the same recordings must give exactly this."""
+    import json
+    return {"fit_before": rep["fit_before"]["nrmse"], "fit_after": rep["fit_after"]["nrmse"],
+            "missing": [(m["effect"], json.dumps(m["parameters"], sort_keys=True, default=float))
+                        for m in rep["missing_physics"]],
+            "parameters": rep["updated_parameters"],
+            "mismatches": [(m["channels"], m["frequency_hz"], m["severity"]) for m in rep["mismatches"]]}

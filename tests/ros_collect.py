@@ -3,8 +3,10 @@
     python tests/ros_collect.py OUT.json SECONDS IDLE_S pkg/msg/Type:/topic [...]
 
 Each message becomes a dict of its fields (arrays as lists, nested messages as dicts). Stops
-after SECONDS, or IDLE_S after the last message once something arrived.
+after SECONDS, or IDLE_S after the last message once something arrived. IDLE_S given as
+``until:FILE``: stops 1 s after FILE exists instead (a driver says the graph is done).
 """
+import os
 import array
 import json
 import sys
@@ -31,7 +33,10 @@ def to_plain(msg):
 
 
 def main():
-    out, seconds, idle = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+    out, seconds = sys.argv[1], float(sys.argv[2])
+    until = sys.argv[3][len("until:"):] if sys.argv[3].startswith("until:") else None
+    idle = float("inf") if until else float(sys.argv[3])
+    seen_until = None
     specs = [a.split(":", 1) for a in sys.argv[4:]]
     rclpy.init()
     node = Node("collect")
@@ -48,6 +53,10 @@ def main():
     while time.monotonic() < end:
         ex.spin_once(timeout_sec=0.05)
         if last["t"] is not None and time.monotonic() - last["t"] > idle:
+            break
+        if until is not None and seen_until is None and os.path.exists(until):
+            seen_until = time.monotonic()
+        if seen_until is not None and time.monotonic() - seen_until > 1.0:
             break
     ex.shutdown()
     node.destroy_node()

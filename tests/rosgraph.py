@@ -1,5 +1,7 @@
 """Running a node under test over a real ROS 2 graph: start it, replay a bag into it, collect
-what it publishes (tests/ros_collect.py), stop everything."""
+what it publishes (tests/ros_collect.py), stop everything; or talk to it from the test process
+(``ros_context``, ``spin_until``, ``call``)."""
+import contextlib
 import json
 import os
 import subprocess
@@ -10,9 +12,17 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def domain_id(base: int) -> int:
+    """A ROS domain for one test's graph, never the one a test running at the same time in another
+    pytest-xdist worker uses: worker w of n takes the domains = w (mod n), all within Fast DDS's 0-232."""
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+    return worker + workers * ((base + os.getpid()) % (230 // workers))
+
+
 def ros_env(domain_base: int) -> dict:
     """Environment for one test's graph: its own domain id, DDS on loopback, the repo on path."""
-    return dict(os.environ, ROS_DOMAIN_ID=str(domain_base + os.getpid() % 40),
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id(domain_base)),
                 ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(HERE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
@@ -46,3 +56,42 @@ def stop_processes(*procs) -> None:
                 p.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+@contextlib.contextmanager
+def ros_context(env: dict):
+    """An rclpy context in the test process on ``env``'s ROS domain (DDS on loopback), shut down
+    on exit: for a test that talks to node processes itself (services, parameters, graph queries)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: env[k] for k in keys})      # read by rcl when the context starts
+    ctx = Context()
+    try:
+        rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+        yield ctx
+    finally:
+        rclpy.try_shutdown(context=ctx)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def spin_until(executor, cond, what: str, timeout_s: float = 60.0) -> None:
+    """Spin ``executor`` until ``cond()``; AssertionError naming ``what`` after ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < end, f"timed out after {timeout_s:g} s waiting for {what}"
+        executor.spin_once(timeout_sec=0.05)
+
+
+def call(executor, client, request, timeout_s: float = 30.0):
+    """A service call from the test process: wait for the service, call, return the response."""
+    spin_until(executor, client.service_is_ready, f"service {client.srv_name}", timeout_s)
+    future = client.call_async(request)
+    spin_until(executor, future.done, f"the response of {client.srv_name}", timeout_s)
+    return future.result()

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from rosgraph import domain_id
 
 pytestmark = pytest.mark.ros
 HERE = Path(__file__).resolve().parent
@@ -13,7 +14,7 @@ HERE = Path(__file__).resolve().parent
 
 def test_node_publishes_a_mismatch_report_for_a_residual_burst(tmp_path):
     env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(150 + os.getpid() % 50)
+    env["ROS_DOMAIN_ID"] = str(domain_id(150))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
     node = subprocess.Popen([sys.executable, "-m", "maglev_ros.nodes.discrepancy"], env=env,

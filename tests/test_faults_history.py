@@ -20,6 +20,7 @@ import pytest
 
 from maglev_ros.errors import UserError
 from maglev_ros.updating.history import SCHEMA, ParameterHistory, damaged_path
+from rosgraph import domain_id
 
 HERE = Path(__file__).resolve().parent
 
@@ -335,7 +336,7 @@ def test_a_history_replaced_under_its_writer_continues_there_with_increasing_rev
 @pytest.mark.ros
 def test_a_second_updater_node_on_the_same_history_exits_with_one_line(tmp_path):
     path = tmp_path / "h.jsonl"
-    env = dict(os.environ, ROS_DOMAIN_ID=str(170 + os.getpid() % 40), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(170)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=str(HERE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     with ParameterHistory(path) as h:
         h.open_writer()

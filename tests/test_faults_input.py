@@ -11,6 +11,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from bagfactory import Faults, example_topics, make_metadata, write_foreign_bag  # noqa: E402
 
 from maglev_ros.cli import main  # noqa: E402
+from rosgraph import domain_id
 
 
 def _one_line(err: str, *needles: str) -> str:
@@ -38,7 +39,7 @@ def test_deeply_nested_metadata_is_one_line(nested_bag, verb, capsys):
 
 
 def test_deeply_nested_metadata_stops_the_replay_in_one_line(nested_bag):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(120 + os.getpid() % 40), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(120)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", str(nested_bag), "--fast", "--quiet"],
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode != 0
@@ -104,7 +105,7 @@ def test_a_topic_name_ros_refuses_is_skipped_with_one_warning(tmp_path):
     good = next(iter(topics))
     topics["/testline/extra/bad name"] = topics[good]
     bag = write_foreign_bag(tmp_path / "bag", md, topics)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(125 + os.getpid() % 40), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id(125)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     r = subprocess.run([sys.executable, "-m", "maglev_ros.cli", "replay", str(bag), "--fast", "--quiet"],
                        env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr

@@ -21,6 +21,7 @@ import pytest
 
 from maglev_ros.errors import UserError
 from maglev_ros.replay_timing import Backpressure, Stalled
+from rosgraph import domain_id
 
 HERE = Path(__file__).resolve().parent
 TOPIC = "/testline/vehicle/position"
@@ -134,7 +135,7 @@ def _expected_stamps_ns() -> list[int]:
 @pytest.fixture()
 def env():
     # a domain of its own (other ROS tests use 20 and up), DDS on loopback, this tree first
-    return dict(os.environ, ROS_DOMAIN_ID=str(1 + os.getpid() % 19),
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id(1)),
                 ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(HERE.parent) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 

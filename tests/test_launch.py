@@ -25,7 +25,8 @@ def test_replay_waits_for_the_graph_and_every_message_arrives(tmp_path, monkeypa
     # be half over before it subscribes
     monkeypatch.setitem(launch_graph.GRAPHS, "_test", [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("summary", "maglev_ros.nodes.summary", params={"idle_s": 1.0, "json_out": str(out)}),
+        NodeSpec("summary", "maglev_ros.nodes.summary",
+                 params={"idle_s": 1.0, "json_out": str(out), "reliable": True}),   # counts every message
     ])
     log = io.StringIO()
     t0 = time.monotonic()
@@ -35,7 +36,7 @@ def test_replay_waits_for_the_graph_and_every_message_arrives(tmp_path, monkeypa
     assert code == 0, log.getvalue()
     with BagReader(BAG) as r:
         expected = {t: i.count for t, i in r.topics.items()}
-    flow = json.loads(out.read_text())
+    flow = json.loads(out.read_text())["topics"]
     got = {t: flow.get(t, {}).get("messages", 0) for t in expected}
     assert got == expected, log.getvalue()
     assert "starting anyway" not in log.getvalue()

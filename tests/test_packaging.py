@@ -30,6 +30,8 @@ ROSDEP_KEY = {
     "matplotlib": "python3-matplotlib", "rosbags": "python3-rosbags-pip",
     "numba": "python3-numba", "torch": "python3-torch", "tqdm": "python3-tqdm",
     "rich": "python3-rich",
+    # no key for mcap alone: the pip key mcap-ros2-support installs it (its dependency)
+    "mcap": "mcap-ros2-support",
     "rclpy": "rclpy", "std_msgs": "std_msgs", "std_srvs": "std_srvs",
     "rosgraph_msgs": "rosgraph_msgs", "builtin_interfaces": "builtin_interfaces",
     "launch": "launch", "launch_ros": "launch_ros", "maglev_msgs": "maglev_msgs",
@@ -37,7 +39,9 @@ ROSDEP_KEY = {
     "rcl_interfaces": "rcl_interfaces",
 }
 # imported only when installed (guarded import) and without a rosdep key: pip brings it
-OPTIONAL_WITHOUT_KEY = {"threadpoolctl"}
+# (foxglove: foxglove-sdk, the live view's server, from requirements.txt; the node says so in one
+# line when it is missing)
+OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove"}
 # what pip installs for the science core; the ROS side comes from requirements.txt
 PIP_NAME = {"yaml": "pyyaml"}
 

@@ -15,6 +15,7 @@ import pytest
 
 from maglev_ros.bag_writer import BagWriter
 from maglev_ros.sensor_block import Block
+from rosgraph import domain_id
 
 pytestmark = pytest.mark.ros
 HERE = Path(__file__).resolve().parent
@@ -36,7 +37,7 @@ def _metadata(n_ch):
 @pytest.fixture()
 def ros_env(tmp_path):
     env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+    env["ROS_DOMAIN_ID"] = str(domain_id(100))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
     return env

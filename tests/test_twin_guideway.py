@@ -129,3 +129,40 @@ def test_bad_span_override_names_the_key():
         line_spans({"spans": [{"start_m": 0.0, "length_m": 10.0, "area_m2": "big"}]}, twin_config())
     with pytest.raises(ContractError, match=r"line.spans\[1\].length_m"):
         line_spans([{"start_m": 0.0, "length_m": 10.0}, {"start_m": 10.0}], twin_config())
+
+
+def test_shapes_on_a_long_line_are_the_hermite_interpolation_of_each_spans_own_modes():
+    """shapes_at / slopes_at sum each point's own span's modes only: the same values as the cubic
+    Hermite interpolation of every mode's nodal values (zero off its span), on a 12-span line with
+    spans given out of order, points on joints, on the last span's end and off the line."""
+    cfg = twin_config()
+    order = [3, 0, 7, 1, 11, 5, 2, 9, 4, 10, 6, 8]
+    L = 12.384
+    spans = line_spans({"spans": [{"id": f"S{i}", "start_m": i * L, "length_m": L} for i in order]}, cfg)
+    mb = Guideway(spans, n_elements_per_span=8).modes(cutoff_hz=250.0)
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.uniform(-2.0, 12 * L + 2.0, 400), np.arange(13) * L, [-1e-9, 12 * L + 1e-9]])
+    ref_phi = np.zeros((x.size, mb.n_modes))
+    ref_dphi = np.zeros((x.size, mb.n_modes))
+    col = 0
+    for fe, vec in zip(mb.spans_fe, mb.vectors):
+        full = np.zeros((2 * (fe.n_elements + 1), vec.shape[1]))
+        full[fe.free_dofs] = vec
+        le = fe.element_length_m
+        last = fe.span.end_m == max(s.end_m for s in spans)
+        for i, xi_m in enumerate(x):
+            inside = fe.span.start_m <= xi_m < fe.span.end_m or (last and xi_m == fe.span.end_m)
+            if not inside:
+                continue
+            e = min(int((xi_m - fe.span.start_m) // le), fe.n_elements - 1)
+            t = (xi_m - fe.span.start_m) / le - e
+            h = (1 - 3 * t ** 2 + 2 * t ** 3, le * (t - 2 * t ** 2 + t ** 3), 3 * t ** 2 - 2 * t ** 3, le * (t ** 3 - t ** 2))
+            dh = ((-6 * t + 6 * t ** 2) / le, 1 - 4 * t + 3 * t ** 2, (6 * t - 6 * t ** 2) / le, 3 * t ** 2 - 2 * t)
+            nodal = full[2 * e:2 * e + 4]
+            ref_phi[i, col:col + vec.shape[1]] = np.dot(h, nodal)
+            ref_dphi[i, col:col + vec.shape[1]] = np.dot(dh, nodal)
+        col += vec.shape[1]
+    scale = np.abs(ref_phi).max()
+    np.testing.assert_allclose(mb.shapes_at(x), ref_phi, rtol=1e-12, atol=1e-12 * scale)
+    np.testing.assert_allclose(mb.slopes_at(x), ref_dphi, rtol=1e-12, atol=1e-12 * np.abs(ref_dphi).max())
+    assert np.count_nonzero(np.abs(ref_phi).sum(axis=1)) < x.size      # points off the line are zero rows

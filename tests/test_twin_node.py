@@ -17,6 +17,7 @@ from maglev_ros.bag_reader import BagReader
 from maglev_ros.errors import UserError
 from maglev_ros.twin.online import OnlineTwin, nrmse
 from maglev_ros.twin.simulate import simulate, truth_paths
+from rosgraph import domain_id
 
 ROOT = Path(__file__).resolve().parents[1]
 QUIET = ["instrument.anti_alias=none", "instrument.guideway_accel.noise_rms=0",
@@ -159,7 +160,7 @@ ex.shutdown(); node.destroy_node(); rclpy.try_shutdown()
 def test_twin_node_publishes_prediction_for_every_block_and_only_valid_residuals(quiet_pass, tmp_path):
     bag, md, items, _params, _irr = quiet_pass
     env = dict(os.environ)
-    env["ROS_DOMAIN_ID"] = str(150 + os.getpid() % 80)
+    env["ROS_DOMAIN_ID"] = str(domain_id(150))
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     groups = {"/testline/guideway/accel": "guideway_accel", "/testline/guideway/displacement": "guideway_displacement",

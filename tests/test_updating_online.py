@@ -15,6 +15,7 @@ import pytest
 
 from updating_data import ambient_metadata, true_modes
 from maglev_ros.updating.online import OnlineUpdater
+from rosgraph import domain_id, stop_processes
 
 HERE = Path(__file__).resolve().parent
 DESIGN = {"guideway": {"youngs_modulus_pa": 3.9e10, "density_kg_m3": 2500.0, "area_m2": 1.48,
@@ -98,18 +99,8 @@ def test_history_without_a_path_stays_in_memory(tmp_path, monkeypatch):
 
 
 def _env():
-    return dict(os.environ, ROS_DOMAIN_ID=str(100 + os.getpid() % 60), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    return dict(os.environ, ROS_DOMAIN_ID=str(domain_id(100)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                 PYTHONPATH=str(HERE.parent) + os.pathsep + str(HERE) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-
-
-def _stop(*procs):
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(2)
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
 
 
 @pytest.mark.ros
@@ -130,7 +121,7 @@ def test_updater_node_publishes_stores_and_republishes_after_restart(tmp_path):
     try:
         coll.wait(timeout=120)
     finally:
-        _stop(pub, coll, node)
+        stop_processes(pub, coll, node)
     got = json.loads(out1.read_text())["/maglev/twin/parameters"]
     assert got, node.stdout.read() if node.stdout else ""
     m = got[-1]
@@ -152,7 +143,7 @@ def test_updater_node_publishes_stores_and_republishes_after_restart(tmp_path):
     try:
         coll2.wait(timeout=60)
     finally:
-        _stop(pub2, coll2, node2)
+        stop_processes(pub2, coll2, node2)
     got2 = json.loads(out2.read_text())["/maglev/twin/parameters"]
     assert got2 and got2[-1]["revision"] == 1 and got2[-1]["values"] == m["values"]
 

@@ -1,4 +1,7 @@
-"""``maglev-ros launch GRAPH``: start the suite's node graph (our own launcher; see launch/)."""
+"""``maglev-ros launch GRAPH``: start the suite's node graph (our own launcher; see launch/).
+
+The options are the launch arguments of launch/monitor.launch.py (``launch_graph.LAUNCH_ARGUMENTS``)
+and both compute what each node gets with ``launch_graph.node_launches``."""
 from __future__ import annotations
 
 import os
@@ -12,44 +15,105 @@ ORDER = 40
 
 
 def add_arguments(p) -> None:
+    from maglev_ros.launch_graph import LAUNCH_ARGUMENTS
+    default = {name: value for name, value, _ in LAUNCH_ARGUMENTS}    # the launch file's defaults
     p.add_argument("graph", help="graph name: monitor")
-    p.add_argument("--bag", help="replay this bag through the graph")
-    p.add_argument("--rate", type=float, default=1.0, help="replay rate (0.1-100)")
+    p.add_argument("--bag", nargs="+", metavar="BAG",
+                   help="replay this bag through the graph (several: one after the other, each with "
+                        "its results before the next)")
+    p.add_argument("--rate", type=float, default=float(default["rate"]), help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
-    p.add_argument("--out", default="out/monitor", metavar="DIR",
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="run the whole graph in this ROS namespace, /clock included (two lines side "
+                        "by side: /line1, /line2)")
+    p.add_argument("--use-sim-time", action="store_true",
+                   help="the nodes run on the replay's /clock (the replay itself on wall time)")
+    p.add_argument("--out", default=default["out"], metavar="DIR",
                    help="output directory of the launch (default out/monitor): the updater's "
                         "parameter history goes there")
     p.add_argument("--history", metavar="FILE",
                    help="the updater's parameter history (default DIR/twin_parameters.jsonl); only "
                         "records of the recording's own line are loaded from it")
-    p.add_argument("--linger", type=float, default=30.0, metavar="S",
-                   help="after a finite replay ends, keep the graph running this long so the twin, "
-                        "updater and discrepancy nodes can finish (default 30 s; the updater's magnet "
-                        "layer may take minutes on a busy machine)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record the graph's /maglev/* outputs, /testline/metadata and /diagnostics "
+                        "to this MCAP file (Foxglove, rosbags; finished when the graph stops)")
+    p.add_argument("--record-inputs", action="store_true",
+                   help="with --record: also the /testline/* streams (the file is then a contract "
+                        "bag that every verb reads)")
+    p.add_argument("--record-reliable", action="store_true",
+                   help="with --record: subscribe the streams reliably (nothing lost; the replay "
+                        "then also waits for the recorder)")
+    p.add_argument("--view", action="store_true",
+                   help="also serve the live view to Foxglove (WebSocket; docs/live_view.md) and print its URL")
+    p.add_argument("--view-port", type=int, default=8765, metavar="N",
+                   help="port of the live view (default 8765)")
+    p.add_argument("--view-host", default="127.0.0.1", metavar="HOST",
+                   help="address the live view listens on (default 127.0.0.1; 0.0.0.0 serves other machines)")
+    p.add_argument("--linger", type=float, default=float(default["linger_s"]), metavar="S",
+                   help="extra time the graph keeps running after the replay's end, which comes once "
+                        "every node has published the last recording's results (default 2 s)")
+    p.add_argument("--results-timeout", type=float, default=float(default["results_timeout_s"]), metavar="S",
+                   help="after each recording, wait at most this long for the nodes' results (the live "
+                        "diagnosis of a pass takes minutes on a busy machine; default 900 s)")
+
+
+def launch_kwargs(args) -> dict:
+    """The keyword arguments of ``launcher.launch`` for these options (checked; no directory made)."""
+    from maglev_ros.launch_graph import check_namespace, launch_overrides
+    from maglev_ros.replay_timing import check_rate
+    for bag in args.bag or []:
+        if not os.path.exists(bag):
+            raise UserError(f"{bag}: no such bag")
+    if args.params_file and not os.path.exists(args.params_file):
+        raise UserError(f"{args.params_file}: no such parameters file")
+    if not args.fast:
+        check_rate(args.rate)
+    if args.linger < 0:
+        raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
+    if args.results_timeout < 0:
+        raise UserError(f"--results-timeout: expected seconds >= 0, got {args.results_timeout}")
+    return dict(bags=args.bag, params_file=args.params_file, linger_s=args.linger,
+                results_timeout_s=args.results_timeout,
+                namespace=check_namespace(args.namespace), use_sim_time=bool(args.use_sim_time),
+                overrides=launch_overrides(rate=args.rate, fast=args.fast, out=args.out, history=args.history))
 
 
 def run(args) -> int:
     from maglev_ros.nodes import require_ros
     require_ros()
     from maglev_ros.launcher import launch
-    from maglev_ros.replay_timing import check_rate
-    if args.bag and not os.path.exists(args.bag):
-        raise UserError(f"{args.bag}: no such bag")
-    if args.params_file and not os.path.exists(args.params_file):
-        raise UserError(f"{args.params_file}: no such parameters file")
-    if not args.fast:
-        check_rate(args.rate)
-    # one process's \r progress bar garbles the merged output: the replay logs its summary instead
-    replay = {"rate": float(args.rate), "fast": bool(args.fast), "progress": False}
-    if args.linger < 0:
-        raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
-    history = Path(args.history) if args.history else Path(args.out) / "twin_parameters.jsonl"
+    kwargs = launch_kwargs(args)
+    extra = []
+    if args.record:
+        from maglev_ros.launch_graph import recorder_spec
+        from maglev_ros.outputs import check_file
+        if not args.record.endswith(".mcap"):
+            raise UserError(f"--record {args.record}: expected a file name ending in .mcap")
+        check_file(args.record, "--record")
+        extra.append(recorder_spec(args.record, args.record_inputs, args.record_reliable,
+                                   sim_time=bool(args.bag)))
+    elif args.record_inputs or args.record_reliable:
+        raise UserError("--record-inputs / --record-reliable: given without --record FILE.mcap")
+    if args.view:
+        from maglev_ros.launch_graph import view_node, view_urls
+        if not 1 <= args.view_port <= 65535:
+            raise UserError(f"--view-port: expected a port 1-65535, got {args.view_port}")
+        import importlib.util
+        if importlib.util.find_spec("foxglove") is None:
+            raise UserError("--view: the live view needs foxglove-sdk, which is not installed: "
+                            "pip install foxglove-sdk==0.30.3 (scripts/install does)")
+        extra.append(view_node(args.view_host, args.view_port))
+    history = Path(kwargs["overrides"]["updater"]["history_path"])
     try:
         history.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
-          f"{history.resolve()}", flush=True)
-    return launch(args.graph, bag=args.bag, params_file=args.params_file, linger_s=args.linger,
-                  overrides={"replay": replay, "updater": {"history_path": str(history.resolve())}})
+          f"{history.resolve()}" + (f"; namespace {kwargs['namespace']}" if kwargs["namespace"] else "")
+          + (f"; recording to {Path(args.record).resolve()}" if args.record else ""), flush=True)
+    if args.view:
+        app, ws = view_urls(args.view_host, args.view_port)
+        layout = Path(__file__).resolve().parents[1] / "config" / "foxglove_layout.json"
+        print(f"live view: open {app}\n           or connect Foxglove to {ws}; layout: {layout}", flush=True)
+    return launch(args.graph, extra=extra, **kwargs)

@@ -90,14 +90,16 @@ def identify_bag(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=No
 
 def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=None,
                    decimate_to_hz=None, window="auto", scale_channels=None) -> BagModes:
-    """Open the bag and identify. Settings left at None are chosen from the recording
+    """Open the bag (or a :class:`~maglev_ros.bag_memory.MemoryBag`: a recording a node received)
+    and identify. Settings left at None are chosen from the recording
     (:func:`maglev_ros.modal.bands.plan_bands`); ``info["settings"]`` states them and where
     each came from. ``scale_channels`` None: divide each channel by its std only when the
     channels' units differ."""
-    from maglev_ros.bag_reader import BagReader
+    from maglev_ros.bag_memory import open_reader, source_name
     from maglev_ros.bag_windows import read_checked_windows
 
-    with BagReader(path) as r:
+    with open_reader(path) as r:
+        path = source_name(path)
         if TOPIC_ACCEL not in r.topics:
             raise UserError(f"{path}: topic {TOPIC_ACCEL} not in bag; expected guideway "
                             f"accelerations (topics: {', '.join(sorted(r.topics)) or 'none'})")

@@ -42,10 +42,8 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from maglev_ros.updating.guideway_layer import GuidewayLayer
-    from maglev_ros.updating.magnet_layer import MagnetLayer
     from maglev_ros.progress import for_cli
-    from maglev_ros.updating.pipeline import update_from_bags
+    from maglev_ros.updating.pipeline import update_from_bags, update_layers
     from maglev_ros.health import report_lines
 
     for b in [args.ambient, *args.passes]:
@@ -57,11 +55,8 @@ def run(args) -> int:
         raise UserError(f"--samples: expected >= 8, got {args.samples}")
     if args.polish_evals < 1:
         raise UserError(f"--polish-evals: expected >= 1, got {args.polish_evals}")
-    sw = {}
-    if args.swarm is not None:
-        if min(args.swarm) < 2:
-            raise UserError(f"--swarm: expected PARTICLES >= 2 and ITERATIONS >= 2, got {args.swarm[0]} {args.swarm[1]}")
-        sw = {"n_particles": args.swarm[0], "n_iterations": args.swarm[1]}
+    if args.swarm is not None and min(args.swarm) < 2:
+        raise UserError(f"--swarm: expected PARTICLES >= 2 and ITERATIONS >= 2, got {args.swarm[0]} {args.swarm[1]}")
     out = Path(args.out)
     # check the outputs before minutes of computation, not after
     outputs.check_file(out, "--out")
@@ -71,10 +66,9 @@ def run(args) -> int:
         outputs.check_dir(args.plot, "--plot")
     with for_cli(args.quiet, "update") as progress:
         # the pipeline's messages go to stderr with the progress: stdout stays the result
+        gl, ml = update_layers(args.samples, args.polish_evals, args.swarm, args.seed)
         up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
-                              guideway_layer=GuidewayLayer(seed=args.seed, **sw),
-                              magnet_layer=MagnetLayer(n_samples=args.samples, polish_max_nfev=args.polish_evals,
-                                                       seed=args.seed, **sw), progress=progress)
+                              guideway_layer=gl, magnet_layer=ml, progress=progress)
         for h in up.provenance["health"]:
             for line in report_lines(h):
                 print(f"maglev-ros update: {line}", file=sys.stderr)

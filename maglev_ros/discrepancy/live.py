@@ -77,7 +77,9 @@ class RecordingAssembler:
         if self.metadata is None or not any(tb.blocks for tb in topics.values()):
             return None
         signals, position = {}, None
-        for topic, tb in topics.items():
+        # topics by name, as the bag reader lists them: the channels' order (and every sum over
+        # them) is then load_recording's whichever topic's block came first
+        for topic, tb in sorted(topics.items()):
             chans, t, x = tb.arrays(topic)
             if topic == TOPIC_VEHICLE_POSITION:
                 if "position_m" in chans:

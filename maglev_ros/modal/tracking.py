@@ -1,7 +1,8 @@
 """Online modal tracking over a sensor stream (no rclpy).
 
 :class:`StreamingSSI` turns a stream of blocks into a :class:`ModalResult` every ``update_s`` of
-stream time, identified from the last ``window_s``. Per-update work is kept low:
+stream time, identified from the last ``window_s`` (or from all of the stream once
+``min_window_s`` has come, until it reaches ``window_s``). Per-update work is kept low:
 
 * decimation by a stateful polyphase FIR (only the kept output samples are computed; linear
   phase, so no extra poles enter the data, unlike an IIR anti-alias filter);
@@ -70,11 +71,13 @@ class StreamingSSI:
     """Sliding-window SSI-cov over a stream: ``push(block)`` returns the results produced.
 
     ``ssi`` holds the identification settings (its ``decimate_to_hz`` sets the decimation);
-    ``window_s`` window length, ``update_s`` stream time between results.
+    ``window_s`` window length, ``update_s`` stream time between results; ``min_window_s``
+    (default ``window_s``): the first result once this much has come, the window then grows
+    with the stream up to ``window_s`` and slides from there.
     """
 
     def __init__(self, ssi: SSICov, fs_hz: float, channels, window_s: float = 120.0,
-                 update_s: float = 2.0, exact_svd_every: int = 30):
+                 update_s: float = 2.0, exact_svd_every: int = 30, min_window_s: float | None = None):
         if fs_hz <= 0:
             raise UserError(f"fs_hz: expected a positive sampling rate, got {fs_hz!r}")
         if update_s <= 0 or window_s < update_s:
@@ -88,8 +91,14 @@ class StreamingSSI:
         self.dec = StreamingDecimator(q, len(self.channels))
         self.refs = ssi._ref_indices(self.channels)
         self.max_lag = ssi.max_lag
-        self.chunk_len = max(int(round(update_s * self.fs_hz)), 1)
+        self.q = q
+        # chunks end every update_s of INPUT samples (decimated: ceil(j C / q)), so streams of
+        # several bands at different decimations complete their chunks on the same input sample
+        self.chunk_in = max(int(round(update_s * self.fs_in_hz)), 1)
         self.n_chunks = max(int(round(window_s / update_s)), 1)
+        self.min_chunks = min(max(int(round((min_window_s or window_s) / update_s)), 1), self.n_chunks)
+        self._chunks_done = 0
+        self._taken = 0                                    # decimated samples put into chunks
         self.window_s, self.update_s = float(window_s), float(update_s)
         self.exact_svd_every = int(exact_svd_every)
         self._hist = np.zeros((0, len(self.channels)))     # last max_lag decimated samples
@@ -110,12 +119,16 @@ class StreamingSSI:
             y = self.dec.push(block)
             self._pending = np.concatenate([self._pending, y], axis=0)
             out = []
-            while self._pending.shape[0] >= self.chunk_len:
-                chunk = self._pending[:self.chunk_len]
-                self._pending = self._pending[self.chunk_len:]
+            while (self._chunks_done + 1) * self.chunk_in <= self.n_samples_in:
+                end_in = (self._chunks_done + 1) * self.chunk_in
+                take = -(-end_in // self.q) - self._taken       # the decimator has made them
+                chunk = self._pending[:take]
+                self._pending = self._pending[take:]
+                self._taken += take
+                self._chunks_done += 1
                 self._add_chunk(chunk)
-                if len(self._chunks) == self.n_chunks:
-                    self.time_s = self.n_samples_in / self.fs_in_hz
+                if len(self._chunks) >= self.min_chunks:
+                    self.time_s = end_in / self.fs_in_hz
                     out.append(self._identify())
         return out
 
@@ -124,29 +137,32 @@ class StreamingSSI:
         h = self._hist.shape[0]
         n = chunk.shape[0]
         acc = np.zeros((self.max_lag + 1, len(self.channels), self.refs.size))
-        late = seg[h:]
+        pairs = np.zeros(self.max_lag + 1)
         for k in range(self.max_lag + 1):
-            if h - k < 0:   # start of stream: not enough history for this lag
-                m = n - (k - h)
-                acc[k] = late[k - h:].T @ seg[:m][:, self.refs] * (n / max(m, 1))
-            else:
-                acc[k] = late.T @ seg[h - k:h - k + n][:, self.refs]
-        self._chunks.append((acc, n))
+            # products whose later sample lies in the chunk and whose earlier one exists (near
+            # the stream's start, or with chunks shorter than the lags, fewer than n)
+            lo = max(h, k)
+            if lo < h + n:
+                acc[k] = seg[lo:h + n].T @ seg[lo - k:h + n - k][:, self.refs]
+                pairs[k] = h + n - lo
+        self._chunks.append((acc, n, pairs))
         self._mean_acc.append(chunk.sum(axis=0))
         self._hist = seg[-self.max_lag:] if seg.shape[0] >= self.max_lag else seg
 
     def _identify(self) -> ModalResult:
         sums = np.stack([c[0] for c in self._chunks])
         counts = np.array([c[1] for c in self._chunks], dtype=float)
+        pairs = np.stack([c[2] for c in self._chunks])             # (chunks, lags)
         n_tot = counts.sum()
         mean = np.sum(self._mean_acc, axis=0) / n_tot
         corr = np.outer(mean, mean[self.refs])
-        cov = sums.sum(axis=0) / n_tot - corr[None]
+        cov = sums.sum(axis=0) / np.maximum(pairs.sum(axis=0), 1)[:, None, None] - corr[None]
         nb = min(self.ssi.n_blocks, len(self._chunks))
         block_covs = None
         if self.ssi.uncertainty == "blocks" and nb >= 3:
             groups = np.array_split(np.arange(len(self._chunks)), nb)
-            block_covs = np.stack([sums[g].sum(axis=0) / counts[g].sum() - corr[None] for g in groups])
+            block_covs = np.stack([sums[g].sum(axis=0) / np.maximum(pairs[g].sum(axis=0), 1)[:, None, None]
+                                   - corr[None] for g in groups])
         v0 = None if (self._v is None or self._n_updates % self.exact_svd_every == 0) else self._v
         res, self._v = self.ssi.fit_covariances(cov, self.fs_hz, self.channels,
                                                 block_covs=block_covs, v0=v0)
@@ -330,57 +346,116 @@ class ModeTracker:
         return TrackerUpdate(float(time_s), out, tuple(events))
 
 
+def min_window_s(fmin_hz: float | None = None) -> float:
+    """The shortest record on which the ``modes`` verb's rules look down to ``fmin_hz`` (default:
+    their lowest mode, 1 Hz): its longest lag, PERIODS periods of fmin x 2, is LAG_FRACTION of
+    the record (40 s for 1 Hz)."""
+    from maglev_ros.modal.bands import FMIN_DEFAULT_HZ, LAG_FRACTION, PERIODS
+    return 2.0 * PERIODS / (LAG_FRACTION * (fmin_hz or FMIN_DEFAULT_HZ))
+
+
 @dataclass(frozen=True)
 class OnlineModalConfig:
-    """Settings of the online identification (the ``modal_id`` node's parameters)."""
-    window_s: float = 120.0
+    """Settings of the online identification (the ``modal_id`` node's parameters). None: chosen
+    from the stream as the ``modes`` verb chooses them from a recording
+    (:func:`maglev_ros.modal.bands.plan_bands` on the shortest window identified, at the
+    stream's rate: fmax 0.4 x the rate, bands of at most a decade each decimated for its top
+    frequency, block rows of 2 periods of a band's lowest frequency, orders from the Hankel size).
+    ``decimate_to_hz`` given: one band at that rate.
+
+    The window: ``window_s`` given, the last ``window_s`` of stream; None, the recording so far,
+    from :func:`min_window_s` (the first estimate) up to ``max_window_s`` (the tracking horizon:
+    beyond it the window slides, so slow changes are followed and memory stays bounded)."""
+    window_s: float | None = None
+    max_window_s: float = 300.0
     update_s: float = 2.0
-    decimate_to_hz: float | None = 500.0
-    block_rows: int = 40
-    max_order: int = 60
-    order_step: int = 4
-    fmin_hz: float = 5.0
-    fmax_hz: float = 150.0
-    n_blocks: int = 6
+    decimate_to_hz: float | None = None
+    block_rows: int | None = None
+    max_order: int | None = None
+    order_step: int = 4          # every 4th order: half the verb's diagram cost, per 2 s update
+    fmin_hz: float | None = None
+    fmax_hz: float | None = None
+    n_blocks: int | None = None
     freq_tol: float = 0.03
     mac_min: float = 0.8
     max_misses: int = 3
     min_confirm: int = 2
+
+    @property
+    def first_window_s(self) -> float:
+        """The stream time of the first estimate (the window the settings are planned for)."""
+        return float(self.window_s) if self.window_s else min_window_s(self.fmin_hz)
+
+    @property
+    def longest_window_s(self) -> float:
+        return float(self.window_s) if self.window_s else max(float(self.max_window_s), self.first_window_s)
 
 
 class OnlineModalID:
     """Blocks of the guideway acceleration stream in, tracked modes out (no ROS).
 
     ``push(stamp_s, data, channels, fs_hz)`` feeds one block (n, c); it returns the tracker
-    updates produced (one per ``update_s`` of stream once ``window_s`` has filled). A change of
-    channels or rate restarts the identification (reported in ``restarts``).
+    updates produced (one per ``update_s`` of stream once the first window has filled). Each band of
+    the plan (``plan``, set from the first block's rate) runs its own :class:`StreamingSSI`;
+    their chunks end on the same input samples, so each update merges the bands' results of the
+    same window (:func:`maglev_ros.modal.bands.merge_band_results`, as the verb merges them). A
+    change of channels or rate restarts the identification (reported in ``restarts``);
+    :meth:`reset` starts afresh (a new recording).
     """
 
     def __init__(self, config: OnlineModalConfig = OnlineModalConfig()):
         self.config = config
-        self.tracker = ModeTracker(freq_tol=config.freq_tol, mac_min=config.mac_min,
-                                   max_misses=config.max_misses, min_confirm=config.min_confirm)
-        self.stream: StreamingSSI | None = None
+        self.restarts = 0
+        self.reset()
+
+    def reset(self) -> None:
+        c = self.config
+        self.tracker = ModeTracker(freq_tol=c.freq_tol, mac_min=c.mac_min,
+                                   max_misses=c.max_misses, min_confirm=c.min_confirm)
+        self.streams: list[StreamingSSI] = []
+        self.plan = None
         self.key = None
         self.t0_s = None
-        self.restarts = 0
+
+    @property
+    def window_s(self) -> float:
+        """The window of the last estimate [s] (the first window before any)."""
+        st = self.streams[0] if self.streams else None
+        if st is None or not st._chunks:
+            return self.config.first_window_s
+        return len(st._chunks) * st.chunk_in / st.fs_in_hz
 
     def _start(self, channels, fs_hz: float) -> None:
+        from maglev_ros.modal.bands import plan_bands
         c = self.config
-        ssi = SSICov(block_rows=c.block_rows, orders=range(c.order_step, c.max_order + 1, c.order_step),
-                     decimate_to_hz=c.decimate_to_hz if c.decimate_to_hz and c.decimate_to_hz < fs_hz else None,
-                     freq_range_hz=(c.fmin_hz, c.fmax_hz), n_blocks=c.n_blocks, spectrum=False)
-        self.stream = StreamingSSI(ssi, fs_hz, channels, window_s=c.window_s, update_s=c.update_s)
+        n = int(round(c.first_window_s * fs_hz))
+        self.plan = plan_bands(fs_hz, n, len(channels), stationary=True, fmin_hz=c.fmin_hz,
+                               fmax_hz=c.fmax_hz, block_rows=c.block_rows, max_order=c.max_order,
+                               decimate_to_hz=c.decimate_to_hz)
+        self.streams = []
+        for b in self.plan.bands:
+            nb = b.n_blocks if c.n_blocks is None else int(c.n_blocks)
+            ssi = SSICov(block_rows=b.block_rows, orders=range(c.order_step, b.max_order + 1, c.order_step),
+                         decimate_to_hz=fs_hz / b.decimation if b.decimation > 1 else None,
+                         freq_range_hz=b.search_hz, uncertainty="blocks" if nb >= 3 else "cluster",
+                         n_blocks=max(nb, 1), spectrum=False)
+            self.streams.append(StreamingSSI(ssi, fs_hz, channels, window_s=c.longest_window_s,
+                                             update_s=c.update_s, min_window_s=c.first_window_s))
         self.key = (tuple(channels), float(fs_hz))
 
     def push(self, stamp_s: float, data: np.ndarray, channels, fs_hz: float) -> list[TrackerUpdate]:
+        from maglev_ros.modal.bands import BandResult, merge_band_results
         key = (tuple(channels), float(fs_hz))
         if self.key != key:
             if self.key is not None:
                 self.restarts += 1
             self._start(channels, fs_hz)
             self.t0_s = float(stamp_s)
+        x = np.asarray(data, dtype=float)
+        per_band = [st.push(x) for st in self.streams]
         out = []
-        for result in self.stream.push(np.asarray(data, dtype=float)):
-            out.append(self.tracker.update(result, self.t0_s + self.stream.time_s))
+        # every band completes the same chunks on the same input sample: results pair up
+        for results in zip(*per_band):
+            merged = merge_band_results([BandResult(b, r) for b, r in zip(self.plan.bands, results)])
+            out.append(self.tracker.update(merged, self.t0_s + self.streams[0].time_s))
         return out

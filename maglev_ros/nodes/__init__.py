@@ -33,6 +33,7 @@ def require_ros() -> None:
                         + HOW_TO_GET_ROS)
     try:
         importlib.import_module("maglev_msgs.msg")
+        importlib.import_module("maglev_msgs.srv")     # the replay's services (a build before them lacks it)
         importlib.import_module("rclpy")
     except ImportError as exc:   # e.g. the rmw library of the ROS 2 wheels is missing
         raise UserError(f"ROS 2 is installed but does not load ({exc}): " + HOW_TO_GET_ROS) from None

@@ -2,6 +2,7 @@
 the edge check of incoming SensorBlocks, clean spin/shutdown."""
 from __future__ import annotations
 
+import copy
 import importlib
 import os
 import sys
@@ -23,7 +24,11 @@ QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                        reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE)
 
-LATCHED_TOPICS = ("/testline/metadata", "/maglev/twin/parameters")
+# the QoS table: these topics are latched (publisher and subscribers alike), every other topic of
+# the graph is a data stream (QOS_STREAM); /clock and /diagnostics have their ROS profiles.
+# Per-topic overrides and the sensor streams' best-effort fallback: nodes/_qos.py
+LATCHED_TOPICS = ("/testline/metadata", "/maglev/twin/parameters", "/maglev/irregularity",
+                  "/maglev/diagnosis", "/maglev/status")
 
 
 def _allowed_types() -> dict[str, tuple[str, str]]:
@@ -62,7 +67,9 @@ def rel(topic: str) -> str:
 
 
 def qos_for(topic: str) -> QoSProfile:
-    return QOS_LATCHED if topic in LATCHED_TOPICS else QOS_STREAM
+    """A fresh copy of the table's profile of ``topic`` (its absolute graph name): rclpy writes QoS
+    overrides into the profile it is given."""
+    return copy.copy(QOS_LATCHED if topic in LATCHED_TOPICS else QOS_STREAM)
 
 
 def run_node(node_factory, args=None) -> int:

@@ -31,19 +31,22 @@ from dataclasses import asdict, dataclass, field
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from maglev_ros.nodes._common import QOS_LATCHED
+
 TOPIC_STATUS = "maglev/status"
 TOPIC_REPLAY_EVENTS = "maglev/replay/events"
 
 WARMING, READY, BUSY = "warming", "ready", "busy"
 RECORDING_START, RECORDING_END, FINISHED = "recording_start", "recording_end", "finished"
 
-QOS_STATUS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+QOS_STATUS = QOS_LATCHED
 # a node that joins while a multi-recording replay runs still gets the ends it missed
 QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=64,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# a reader of every node's status: KEEP_LAST is per topic, not per writer, so a depth-1 reader
+# keeps only one of the statuses the nodes' writers hand a late joiner at once
+QOS_STATUS_READER = QOS_EVENTS
 POLL_S = 0.2
 
 
@@ -103,6 +106,11 @@ class NodeLifecycle:
             diagnostics.add_check(self.check)
         self._say()
 
+    def event(self, kind: str, index: int | None = None) -> "ReplayEvent | None":
+        """The last replay event of ``kind`` (for recording ``index``) this node has seen."""
+        return next((e for e in reversed(self.events_seen)
+                     if e.event == kind and (index is None or e.index == index)), None)
+
     def set_ready(self, detail: str = "") -> None:
         if self.status.state == WARMING:
             self.status.state, self.status.detail = READY, detail
@@ -158,7 +166,7 @@ class GraphWaiter:
         self.node = node
         self.statuses: dict[str, NodeStatus] = {}
         self._pub = node.create_publisher(String, TOPIC_REPLAY_EVENTS, QOS_EVENTS)
-        node.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUS)
+        node.create_subscription(String, TOPIC_STATUS, self._on_status, QOS_STATUS_READER)
 
     def _on_status(self, msg) -> None:
         st = NodeStatus.from_json(msg.data)

@@ -2,7 +2,9 @@
 
 ``maglev-ros echo TOPIC [--count N] [--timeout S] [--full]``. SensorBlocks are summarised per
 channel (samples, rate, mean/min/max) unless ``--full``; other types print their fields.
-The topic's type is discovered from the graph.
+The topic's type is discovered from the graph; the name is resolved as ROS does (a relative one
+under the node's namespace) and the subscription takes the QoS its publishers offer (best effort,
+latched).
 """
 from __future__ import annotations
 
@@ -15,7 +17,8 @@ import rclpy
 from rclpy.node import Node
 
 from maglev_ros.errors import UserError
-from maglev_ros.nodes._common import ALLOWED_TYPES, message_class, qos_for
+from maglev_ros.nodes._common import ALLOWED_TYPES, QOS_STREAM, message_class
+from maglev_ros.nodes._qos import offered_qos
 from maglev_ros.nodes._echo_options import add_arguments
 
 
@@ -47,7 +50,11 @@ def format_message(msg, full: bool = False) -> str:
 class EchoNode(Node):
     def __init__(self, topic: str, count: int, full: bool, type_timeout_s: float) -> None:
         super().__init__("echo")
-        self.topic, self.count, self.full = topic, count, full
+        try:
+            resolved = self.resolve_topic_name(topic)
+        except Exception as exc:  # noqa: BLE001  (rclpy's invalid-name exceptions: one line for the user)
+            raise UserError(f"{topic!r} is not a valid ROS 2 topic name ({str(exc).splitlines()[0]})") from None
+        self.topic, self.count, self.full = resolved, count, full
         self.received = 0
         self.finished = False
         msgtype = self._discover_type(type_timeout_s)
@@ -57,7 +64,7 @@ class EchoNode(Node):
                             f"reads ({', '.join(sorted(ALLOWED_TYPES))})")
         if cls is None:
             raise UserError(f"topic {topic} has type {msgtype}, which is not installed here")
-        self.create_subscription(cls, topic, self._on_msg, qos_for(topic))
+        self.create_subscription(cls, self.topic, self._on_msg, offered_qos(self, self.topic, QOS_STREAM))
 
     def _discover_type(self, timeout_s: float) -> str:
         deadline = time.monotonic() + timeout_s

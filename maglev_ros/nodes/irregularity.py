@@ -5,9 +5,18 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 
+At a recording's end (graph run protocol, :mod:`maglev_ros.nodes._lifecycle`) it publishes the
+profile of the whole recording as ``maglev-ros irregularity`` computes it of the same bag: the
+recording's blocks are kept (up to ``max_recording_s`` of stream; beyond, the growing profile's
+final state is published instead, with the band fixed up front) and fitted by the verb's
+:class:`~maglev_ros.irregularity.profile.InertialProfiler` with the verb's defaults (corner and
+band speed from the whole pass), then the node starts afresh for the next recording.
+
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
-spacing_m (0.25), band_speed_mps (0: 80% of the metadata's nominal speed, else 15 km/h),
-max_profile_m (0: unbounded), publish_period_s (1.0).
+spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
+15 km/h; the recording's profile at the verb's default), max_profile_m (0: unbounded),
+publish_period_s (1.0, live), max_recording_s (1800); each with its description and range in
+``PARAMS``.
 """
 from __future__ import annotations
 
@@ -22,46 +31,79 @@ from maglev_msgs.msg import IrregularityProfile, SensorBlock
 from maglev_ros.contract import (TOPIC_METADATA, TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                  TOPIC_VEHICLE_POSITION, parse_metadata)
 from maglev_ros.errors import UserError
-from maglev_ros.nodes._common import QOS_LATCHED, BlockGate, qos_for, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
+from maglev_ros.nodes._params import Param, declare
+from maglev_ros.nodes._qos import publisher, subscription
+from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
+MAX_PENDING_BLOCKS = 5000
+TOPIC_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap", TOPIC_VEHICLE_POSITION: "position"}
+
+PARAMS = (
+    Param("highpass_hz", 0.0, "high-pass corner of the integration [Hz] (0: chosen from the stream, "
+                              "as maglev-ros irregularity does)", range=(0.0, 100.0)),
+    Param("spacing_m", 0.25, "spacing of the published profile [m]", range=(0.001, 10.0)),
+    Param("band_speed_mps", 0.0, "speed that sets the valid wavelength band [m/s] (0: 80% of the "
+                                 "metadata's nominal speed, else 15 km/h)", range=(0.0, 200.0)),
+    Param("max_profile_m", 0.0, "longest profile kept [m] (0: unbounded)", range=(0.0, 1e7)),
+    Param("publish_period_s", 1.0, "wall-time period of publishing the grown profile [s]",
+          range=(0.01, 1e9), apply=lambda node, v: node.set_publish_period(v)),
+    Param("max_recording_s", 1800.0, "keep at most this much stream of a recording for its end-of-recording "
+                                     "profile [s]", range=(0.0, 1e7)),
+)
 
 
 class IrregularityNode(Node):
     def __init__(self) -> None:
         super().__init__("irregularity")
-        p = self.declare_parameter
-        self.highpass_hz = p("highpass_hz", 0.0).value or None     # 0: the offline verb's rule
-        self.spacing_m = p("spacing_m", 0.25).value
-        self.band_speed_mps = p("band_speed_mps", 0.0).value
-        self.max_profile_m = p("max_profile_m", 0.0).value
-        period = p("publish_period_s", 1.0).value
+        v = declare(self, PARAMS)
+        self.highpass_hz = v["highpass_hz"] or None     # 0: the offline verb's rule
+        self.spacing_m = v["spacing_m"]
+        self.band_speed_mps = v["band_speed_mps"]
+        self.max_profile_m = v["max_profile_m"]
+        period = v["publish_period_s"]
+        self.max_recording_s = float(v["max_recording_s"])
         self.profiler = None
+        self.metadata = None
         self.pending: list[tuple[str, object]] = []
+        self.kept: dict[str, list] | None = {k: [] for k in TOPIC_KEYS.values()}
+        self.first_stamp_ns = None
+        self.spent = False           # the recording ended: blocks wait for the next one's metadata
         self.last_stamp_ns = 0
         self.published_signature = None
         self.warned: set = set()
-        self.pub = self.create_publisher(IrregularityProfile, TOPIC_IRREGULARITY, QOS_LATCHED)
+        self.pub = publisher(self, IrregularityProfile, TOPIC_IRREGULARITY)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
-        self.create_subscription(String, TOPIC_METADATA, self._on_metadata, qos_for(TOPIC_METADATA))
-        for topic, key in ((TOPIC_VEHICLE_ACCEL, "accel"), (TOPIC_VEHICLE_GAP, "gap"),
-                           (TOPIC_VEHICLE_POSITION, "position")):
-            self.create_subscription(SensorBlock, topic, self._on_block(topic, key), qos_for(topic))
-        self.create_timer(period, self._publish)
+        subscription(self, String, TOPIC_METADATA, self._on_metadata)
+        for topic, key in TOPIC_KEYS.items():
+            subscription(self, SensorBlock, topic, self._on_block(topic, key))
+        self.timer = self.create_timer(period, self._publish)
+        self.lifecycle = NodeLifecycle(self, diagnostics=self.diagnostics)
+
+    def set_publish_period(self, period_s: float) -> None:
+        """The ``publish_period_s`` parameter's live change."""
+        self.destroy_timer(self.timer)
+        self.timer = self.create_timer(period_s, self._publish)
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
-        self.gate.new_stream()
         try:
             md = parse_metadata(msg.data, TOPIC_METADATA)
             offsets = md.magnet_offsets_m
         except Exception as exc:  # noqa: BLE001  (a bad recording must not kill the node)
             self.get_logger().error(f"metadata unusable for the irregularity: {exc}")
             return
+        if self.metadata is not None and not self.spent and md.raw == self.metadata.raw:
+            return                  # the same recording's metadata again (a latched copy)
+        self.gate.new_stream()
+        self.metadata, self.spent, self.profiler = md, False, None
+        self.published_signature = None
         if not offsets:
             self.get_logger().warning("metadata has no vehicle.magnet_offsets_m (ambient run?)")
+            self.pending.clear()
             return
         band = self.band_speed_mps or (0.8 * md.nominal_speed_mps if md.nominal_speed_mps
                                        else 15.0 / 3.6)
@@ -69,30 +111,74 @@ class IrregularityNode(Node):
             offsets, md.nominal_gap_m or 0.010, channel_pairs=magnet_channel_pairs(md),
             band_speed_mps=band, max_profile_m=self.max_profile_m or None,
             highpass_hz=self.highpass_hz, spacing_m=self.spacing_m)
-        for key, block in self.pending:
-            self._feed(key, block)
-        self.pending.clear()
+        pending, self.pending = self.pending, []
+        for key, block in pending:
+            self._take(key, block)
 
     def _on_block(self, topic: str, key: str):
         def cb(msg) -> None:
             block = self.gate.block(msg, topic)
             if block is None:
                 return
-            self.last_stamp_ns = max(self.last_stamp_ns, block.end_ns)
-            if self.profiler is None:
-                self.pending.append((key, block))
-            else:
-                self._feed(key, block)
+            if self.metadata is None or self.spent:      # wait for this recording's metadata
+                if len(self.pending) < MAX_PENDING_BLOCKS:
+                    self.pending.append((key, block))
+            elif self.profiler is not None:
+                self._take(key, block)
         return cb
 
-    def _feed(self, key: str, block) -> None:
+    def _take(self, key: str, block) -> None:
+        self.last_stamp_ns = max(self.last_stamp_ns, block.end_ns)
+        self._keep(key, block)
         try:
             self.profiler.partial_fit(**{key: block})
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f"irregularity: {key} block at {block.stamp_s:.3f} s: {exc}")
 
+    def _keep(self, key: str, block) -> None:
+        """The recording's blocks, for the whole-recording profile at its end (bounded)."""
+        if self.kept is None:
+            return
+        self.first_stamp_ns = block.stamp_ns if self.first_stamp_ns is None else min(self.first_stamp_ns,
+                                                                                   block.stamp_ns)
+        if (block.end_ns - self.first_stamp_ns) * 1e-9 > self.max_recording_s:
+            self.kept = None
+            self.get_logger().warning(
+                f"recording longer than max_recording_s = {self.max_recording_s:g} s: its end publishes "
+                f"the growing profile (band fixed up front), not the offline verb's whole-pass fit")
+            return
+        self.kept[key].append(block)
+
+    # ------------------------------------------------------------------ protocol
+    def on_recording_end(self, index: int) -> None:
+        """Publish the whole recording's profile (the verb's), then start afresh."""
+        if self.profiler is not None and not self.spent:
+            res = self._recording_profile()
+            if res is not None:
+                self._send(res)
+        self.spent = True
+        self.kept = {k: [] for k in TOPIC_KEYS.values()}
+        self.first_stamp_ns = None
+        self.gate.new_stream()      # the next recording sets its own layout
+
+    def busy(self) -> bool:
+        return False                # on_recording_end publishes before it returns
+
+    def _recording_profile(self):
+        from maglev_ros.irregularity.recording import recording_profile
+        try:
+            if self.kept is None or not all(self.kept.values()):
+                return self.profiler.result()
+            return recording_profile(self.metadata, {t: self.kept[k] for t, k in TOPIC_KEYS.items()},
+                                     highpass_hz=self.highpass_hz, spacing_m=self.spacing_m,
+                                     band_speed_mps=self.band_speed_mps or None)
+        except UserError as exc:
+            self.get_logger().error(f"irregularity of the recording: {exc}")
+            return None
+
+    # ------------------------------------------------------------------ output
     def _publish(self) -> None:
-        if self.profiler is None:
+        if self.profiler is None or self.spent:
             return
         try:
             res = self.profiler.result()
@@ -102,6 +188,11 @@ class IrregularityNode(Node):
         if signature[1] == 0 or signature == self.published_signature:
             return
         self.published_signature = signature
+        self._send(res)
+
+    def _send(self, res) -> None:
+        if not np.isfinite(res.irregularity_m).any():
+            return
         msg = IrregularityProfile()
         stamp_to_msg(self.last_stamp_ns, msg.header)
         msg.header.frame_id = "guideway"

@@ -19,9 +19,16 @@ Two solution schemes per time step h (both iterate until the magnet forces stop 
   exchanging interface forces / rail displacements until converged (Gauss-Seidel).
 
 Speed: everything that depends only on the position (mode shapes at the magnets, irregularity,
-the condensed coupling matrices) is precomputed vectorised per block, so the Python loop per step
-is a few small matrix-vector products. Time stepping is written by hand because no maintained
-library integrates a moving-load, nonlinearly coupled system like this.
+the condensed coupling matrices) is precomputed vectorised per block, so the compiled loop per step
+is a few small matrix-vector products. A mode lives on one span, so only the modes of the spans
+under the magnets during a block enter those products (span-local stepping: the cost per step does
+not grow with the line's length); every other mode vibrates freely, and the scheme on a free mode is
+linear: modes a sensor sees are stepped alone (their outputs), the rest jump over the block by the
+scheme's transition matrix to the block's length (per mode, 3x3 on q, q', q''). The results equal
+stepping every mode to round-off (bitwise while no free-ringing span is re-entered);
+``TwinStepper(reference=True)`` steps every mode (the check, bench/bench_twin.py). Time stepping
+is written by hand because no maintained library integrates a moving-load, nonlinearly coupled
+system like this.
 """
 from __future__ import annotations
 
@@ -183,7 +190,7 @@ class TwinStepper:
                  irregularity: Any = None, fs_out_hz: float = 1000.0, start_position_m: float = 0.0,
                  start_speed_mps: float = 0.0, t0_s: float = 0.0, method: str = "newmark",
                  dt_max_s: float | None = None, init: str = "static", block_steps: int = 1024,
-                 current_limit_a: float | None = None):
+                 current_limit_a: float | None = None, reference: bool = False):
         if method not in METHODS:
             raise UserError(f"method: expected one of {METHODS}, got {method!r}")
         if not fs_out_hz > 0:
@@ -211,6 +218,8 @@ class TwinStepper:
         self.dt_s = 1.0 / (self.fs_out_hz * self.n_sub)
         self.t0_s = float(t0_s)
         self.block_steps = int(block_steps)
+        # reference: every mode of the line in every step (the span-local stepping's check, bench)
+        self.reference = bool(reference)
         self.tol = num.iteration_tol
         self.max_iter = num.max_iterations
         self._setup_matrices()
@@ -300,6 +309,15 @@ class TwinStepper:
         self._gq = 1.0 / self._khat
         self._c2zw = 2 * z * w
         self._acc_x, self._acc_u = ss.out_dof_acc
+        self._Ey = np.ascontiguousarray(E[:, :m])
+        self._Eyd = np.ascontiguousarray(E[:, m:2 * m])
+        self._EN = np.ascontiguousarray(E[:, 2 * m:])
+        # the kernel's matrices, transposed (see _kernel)
+        self._kmats = tuple(np.ascontiguousarray(a.T) for a in (self._OL, self._GL, self._ABd0, self._Bd1, self._O,
+                                                               self._OD, self._Ey, self._Eyd))
+        self._free_T = _free_transition(self._gq, self._c2zw, h)
+        self._free_pow: dict[int, np.ndarray] = {}
+        self._obs_for = None
 
     # ----------------------------------------------------------------------------------------
     def _init_static(self) -> None:
@@ -329,29 +347,41 @@ class TwinStepper:
         self._F = F
 
     # ----------------------------------------------------------------------------------------
-    def _prepare(self, pos: np.ndarray, vel: np.ndarray) -> dict:
-        """Position-dependent quantities for a block of steps (vectorised)."""
-        m, nq = self._m, self.modal.n_modes
+    def _prepare(self, pos: np.ndarray, vel: np.ndarray, local: bool = False) -> dict:
+        """Position-dependent quantities for a block of steps (vectorised). ``local``: only the
+        modes of the spans under the magnets (``modes``, the columns of every modal array)."""
+        m = self._m
         X = pos[:, None] + self.magnet_offsets_m[None, :]
         Xf = X.ravel()
-        phi = self.modal.shapes_at(Xf).reshape(X.shape[0], m, nq)
-        dphi = self.modal.slopes_at(Xf).reshape(X.shape[0], m, nq)
+        if local:
+            spans, phi, dphi = self.modal.local_shapes_at(Xf)
+            modes = self.modal.mode_columns(spans)
+        else:
+            phi, dphi, modes = self.modal.shapes_at(Xf), self.modal.slopes_at(Xf), None
+        nq = phi.shape[1]
+        phi = phi.reshape(X.shape[0], m, nq)
+        dphi = dphi.reshape(X.shape[0], m, nq)
         r = self.irregularity.elevation(Xf).reshape(X.shape)
         rd = self.irregularity.slope(Xf).reshape(X.shape) * vel[:, None]
-        g = self._gq
+        g = self._gq if modes is None else self._gq[modes]
+        gain = self._force_gain if modes is None else self._force_gain[modes]
         phig = phi * g[None, None, :]
         # the modal forces phi^T F, times the prewarp's force gain (the rail displacement phi q is not)
-        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)) * self._force_gain[None, :, None])
+        phiT = np.ascontiguousarray(np.transpose(phi, (0, 2, 1)) * gain[None, :, None])
         P = phig @ phiT
         Qc = (dphi * g[None, None, :]) @ phiT
         Q = (2 / self.dt_s) * P + vel[:, None, None] * Qc
-        out = {"phi": phi, "dphi": dphi, "phiT": phiT,
-               "r": r, "rd": rd}
+        # the kernel takes its matrices transposed (phiF: phiT's transpose)
+        out = {"modes": modes, "phit": np.ascontiguousarray(np.transpose(phi, (0, 2, 1))),
+               "dphit": np.ascontiguousarray(np.transpose(dphi, (0, 2, 1))),
+               "phiF": phi * gain[None, None, :], "r": r, "rd": rd}
         if self.method == "newmark":
             Ey, Eyd = self._E[:, :m], self._E[:, m:2 * m]
             S = np.linalg.inv(np.eye(m)[None] + Ey @ P + Eyd @ Q)
-            out["S"] = S
-            out["SEN"] = S @ self._E[:, 2 * m:]
+            out["St"] = np.ascontiguousarray(np.transpose(S, (0, 2, 1)))
+            out["SENt"] = np.ascontiguousarray(np.transpose(S @ self._E[:, 2 * m:], (0, 2, 1)))
+        else:
+            out["St"] = out["SENt"] = np.zeros((1, m, m))
         return out
 
     def advance(self, t_end_s: float, speed_mps: float | None = None) -> PassResult:
@@ -377,7 +407,7 @@ class TwinStepper:
             parts.append(self._run_block(pos, vel))
             done += nb
         self.speed_mps = v_new
-        return PassResult.concat(parts)
+        return parts[0] if len(parts) == 1 else PassResult.concat(parts)
 
     def _saturation(self, lev) -> tuple:
         """(sat, unused, L, unused) for the kernel: smooth current limit L = current_limit_a."""
@@ -395,16 +425,99 @@ class TwinStepper:
 
     # ----------------------------------------------------------------------------------------
     def _run_block(self, pos: np.ndarray, vel: np.ndarray) -> PassResult:
+        """One block of steps. Only the modes of the spans under the magnets during the block enter
+        the coupled kernel; the others vibrate freely: those seen by a sensor are stepped one by one
+        (for their outputs), the rest jump to the block's end by the scheme's transition matrix."""
+        if self.reference:
+            return self._run_block_full(pos, vel)
+        ns = pos.size
+        m, nq = self._m, self.modal.n_modes
+        pre = self._prepare(pos, vel, local=True)
+        act = pre["modes"]
+        lev = self.vehicle.levitation
+        h = self.dt_s
+        newmark = self.method == "newmark"
+        k0 = self._k
+        out_idx = _output_steps(k0, ns, self.n_sub)
+        no = out_idx.size
+        x, u, F = self._x.copy(), self._u.copy(), self._F.copy()
+        q, qd, qdd = self._q[act], self._qd[act], self._qdd[act]
+        rec_x = np.empty((no, self._x.size))
+        rec_u = np.empty((no, self._u.size))
+        rec_q = np.empty((no, act.size))
+        rec_qdd = np.empty((no, act.size))
+        rec_mag = np.empty((no, 4, m))
+        rec_it = np.zeros(no, dtype=np.int64)
+        _KERNEL(newmark, h, float(lev.nominal_gap_m), float(lev.static_current_a), lev.force_coeff,
+                lev.static_force_n, self.tol * float(np.mean(lev.static_force_n)), int(self.max_iter),
+                *self._kmats, self._gq[act], self._c2zw[act], pre["phit"], pre["dphit"], pre["phiF"],
+                pre["r"], pre["rd"], np.ascontiguousarray(vel, dtype=float), pre["St"], pre["SENt"],
+                x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
+                *self._saturation(lev))
+        self._x, self._u, self._F = x, u, F
+        # the modes the sensors see: loaded ones from the kernel, free ones stepped here
+        obs, shapes = self._observed()
+        loaded = np.zeros(nq, bool)
+        loaded[act] = True
+        in_act = loaded[obs]
+        Qo = np.empty((no, obs.size))
+        Qddo = np.empty((no, obs.size))
+        where = np.searchsorted(act, obs[in_act])
+        Qo[:, in_act], Qddo[:, in_act] = rec_q[:, where], rec_qdd[:, where]
+        # (called with no modes too: compiled with the kernel, not first when a span rings alone)
+        fo = obs[~in_act]
+        fq, fqd, fqdd = self._q[fo], self._qd[fo], self._qdd[fo]
+        rq, rqdd = np.empty((no, fo.size)), np.empty((no, fo.size))
+        _FREE(h, self._gq[fo], self._c2zw[fo], ns, fq, fqd, fqdd, out_idx, rq, rqdd)
+        self._q[fo], self._qd[fo], self._qdd[fo] = fq, fqd, fqdd
+        Qo[:, ~in_act], Qddo[:, ~in_act] = rq, rqdd
+        loaded[fo] = True
+        self._q[act], self._qd[act], self._qdd[act] = q, qd, qdd
+        # every other mode: n steps of free vibration in one product per mode
+        rest = np.flatnonzero(~loaded)
+        if rest.size:
+            Tn = self._free_power(ns)[rest]
+            s0 = np.stack([self._q[rest], self._qd[rest], self._qdd[rest]], axis=1)
+            s1 = np.einsum("kij,kj->ki", Tn, s0)
+            self._q[rest], self._qd[rest], self._qdd[rest] = s1[:, 0], s1[:, 1], s1[:, 2]
+        self._k += ns
+        self.position_m = float(pos[-1])
+        t = self.t0_s + (k0 + out_idx + 1) * h
+        nd = self.vehicle.model.n_dof
+        acc = rec_x @ self._acc_x.T + rec_u @ self._acc_u.T
+        return PassResult(
+            time_s=t, position_m=pos[out_idx], speed_mps=vel[out_idx], dof_names=self.vehicle.model.dof_names,
+            vehicle_disp_m=rec_x[:, :nd], vehicle_acc_mps2=acc,
+            magnet_accel_mps2=rec_mag[:, 0], magnet_gap_m=rec_mag[:, 1], magnet_current_a=rec_mag[:, 2],
+            magnet_force_n=rec_mag[:, 3], sensor_names=self.sensor_names, sensor_x_m=self.sensor_x_m,
+            guideway_disp_m=Qo @ shapes.T, guideway_accel_mps2=Qddo @ shapes.T,
+            iterations=rec_it, method=self.method, dt_s=h)
+
+    def _observed(self) -> tuple[np.ndarray, np.ndarray]:
+        """Modes a sensor sees (non-zero shape at some sensor) and the sensors' shapes on them."""
+        if self._obs_for is not self.sensor_shapes:     # (re)built with the basis (discrepancy models swap it)
+            obs = np.flatnonzero(np.any(self.sensor_shapes != 0.0, axis=0))
+            self._obs = (obs, np.ascontiguousarray(self.sensor_shapes[:, obs]))
+            self._obs_for = self.sensor_shapes
+        return self._obs
+
+    def _free_power(self, n: int) -> np.ndarray:
+        """Transition of n free steps per mode, (n_modes, 3, 3) on (q, q', q'')."""
+        Tn = self._free_pow.get(n)
+        if Tn is None:
+            if len(self._free_pow) > 16:
+                self._free_pow.clear()
+            Tn = self._free_pow[n] = np.linalg.matrix_power(self._free_T, n)
+        return Tn
+
+    def _run_block_full(self, pos: np.ndarray, vel: np.ndarray) -> PassResult:
+        """``_run_block`` with every mode of the line in every step (reference)."""
         ns = pos.size
         pre = self._prepare(pos, vel)
         lev = self.vehicle.levitation
         m = self._m
         h = self.dt_s
         newmark = self.method == "newmark"
-        if newmark:
-            S_all, SEN_all = pre["S"], pre["SEN"]
-        else:
-            S_all = SEN_all = np.zeros((1, m, m))
         k0 = self._k
         out_idx = np.array([i for i in range(ns) if (k0 + i + 1) % self.n_sub == 0], dtype=np.int64)
         no = out_idx.size
@@ -417,10 +530,8 @@ class TwinStepper:
         rec_it = np.zeros(no, dtype=np.int64)
         _KERNEL(newmark, h, float(lev.nominal_gap_m), float(lev.static_current_a), lev.force_coeff,
                 lev.static_force_n, self.tol * float(np.mean(lev.static_force_n)), int(self.max_iter),
-                self._OL, self._GL, self._ABd0, self._Bd1, self._O, self._OD,
-                np.ascontiguousarray(self._E[:, :m]), np.ascontiguousarray(self._E[:, m:2 * m]),
-                self._gq, self._c2zw, pre["phi"], pre["dphi"], pre["phiT"], pre["r"], pre["rd"],
-                np.ascontiguousarray(vel, dtype=float), S_all, SEN_all,
+                *self._kmats, self._gq, self._c2zw, pre["phit"], pre["dphit"], pre["phiF"], pre["r"], pre["rd"],
+                np.ascontiguousarray(vel, dtype=float), pre["St"], pre["SENt"],
                 state[0], state[1], state[2], state[3], state[4], state[5],
                 out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it, *self._saturation(lev))
         self._x, self._u, self._q, self._qd, self._qdd, self._F = state
@@ -436,6 +547,50 @@ class TwinStepper:
             magnet_force_n=rec_mag[:, 3], sensor_names=self.sensor_names, sensor_x_m=self.sensor_x_m,
             guideway_disp_m=rec_q @ self.sensor_shapes.T, guideway_accel_mps2=rec_qdd @ self.sensor_shapes.T,
             iterations=rec_it, method=self.method, dt_s=h)
+
+
+def _output_steps(k0: int, ns: int, n_sub: int) -> np.ndarray:
+    """Indices i of the block's steps k0 + i (0 <= i < ns) that end an output interval."""
+    first = (-(k0 + 1)) % n_sub
+    return np.arange(first, ns, n_sub, dtype=np.int64)
+
+
+def _free_transition(gq: np.ndarray, c2zw: np.ndarray, h: float) -> np.ndarray:
+    """One Newmark step of each unloaded mode as a matrix on (q, q', q''): (n_modes, 3, 3)."""
+    a4, a2, b = 4.0 / (h * h), 2.0 / h, 4.0 / h
+    T = np.zeros((gq.size, 3, 3))
+    T[:, 0, 0] = gq * (a4 + c2zw * a2)
+    T[:, 0, 1] = gq * (b + c2zw)
+    T[:, 0, 2] = gq
+    T[:, 1] = a2 * T[:, 0]
+    T[:, 1, 0] -= a2
+    T[:, 1, 1] -= 1.0
+    T[:, 2] = a4 * T[:, 0]
+    T[:, 2, 0] -= a4
+    T[:, 2, 1] -= b
+    T[:, 2, 2] -= 1.0
+    return T
+
+
+def _free_steps(h, gq, c2zw, ns, q, qd, qdd, out_idx, rec_q, rec_qdd):
+    """ns Newmark steps of unloaded modes (in place), the kernel's own arithmetic; records q, q''
+    at ``out_idx``."""
+    a4 = 4.0 / (h * h)
+    a2 = 2.0 / h
+    j = 0
+    n_out = out_idx.size
+    for i in range(ns):
+        for k in range(q.size):
+            qc = q[k]
+            qdc = qd[k]
+            qn = (a4 * qc + (4.0 / h) * qdc + qdd[k] + c2zw[k] * (a2 * qc + qdc)) * gq[k]
+            qdd[k] = a4 * (qn - qc) - (4.0 / h) * qdc - qdd[k]
+            qd[k] = a2 * (qn - qc) - qdc
+            q[k] = qn
+        if j < n_out and out_idx[j] == i:
+            rec_q[j] = q
+            rec_qdd[j] = qdd
+            j += 1
 
 
 def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: float,
@@ -461,27 +616,31 @@ def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: flo
     return wp, z * g, g
 
 
-def _mv(A, x):
-    return A @ x
-
-
-def _mv_loop(A, x):
-    n, k = A.shape
-    out = np.empty(n)
+def _mvt_into(out, At, x):
+    """out = A @ x from At = A^T: each out[i] sums A[i, j] x[j] over j = 0, 1, ... in order (the
+    rounding of a row-by-row loop) while the inner loop over i runs over contiguous memory
+    without a carried dependency (SIMD; a row-by-row dot product waits on its accumulator)."""
+    k, n = At.shape
     for i in range(n):
-        acc = 0.0
-        for j in range(k):
-            acc += A[i, j] * x[j]
-        out[i] = acc
-    return out
+        out[i] = 0.0
+    for j in range(k):
+        xj = x[j]
+        for i in range(n):
+            out[i] += At[j, i] * xj
 
 
-def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GL, phi, phiT, dphi, gq, SEN, a2, v, m):
+def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GLt, phit, phiF, dphit, gq, SENt, a2, v, m):
     """Newton step dN for res(N) = F_true(N) - F_coupled(N) = 0 with saturating currents.
 
     Within a step the command current and the gap are affine in the force remainder N (rail
     through the condensed guideway compliance P, Q; vehicle through GL), so the Jacobian is exact
-    up to the force law's curvature: J = diag(dF/dI [unclipped]) D_I + diag(dF/dgap) D_gap - SEN."""
+    up to the force law's curvature: J = diag(dF/dI [unclipped]) D_I + diag(dF/dgap) D_gap - SEN.
+    Matrices come transposed as in :func:`_kernel`."""
+    GL = np.ascontiguousarray(GLt.T)
+    phi = np.ascontiguousarray(phit.T)
+    phiT = np.ascontiguousarray(phiF.T)
+    dphi = np.ascontiguousarray(dphit.T)
+    SEN = np.ascontiguousarray(SENt.T)
     m2 = 2 * m
     m3 = 3 * m
     P = phi @ (gq.reshape(-1, 1) * phiT)
@@ -501,8 +660,8 @@ def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GL, phi, phiT, dphi, g
     return np.linalg.solve(J, res)
 
 
-def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O, OD, Ey, Eyd, gq, c2zw,
-            phi_all, dphi_all, phiT_all, r_all, rd_all, vel, S_all, SEN_all,
+def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OLt, GLt, ABd0t, Bd1t, Ot, ODt, Eyt, Eydt, gq, c2zw,
+            phit_all, dphit_all, phiF_all, r_all, rd_all, vel, St_all, SENt_all,
             x, u, q, qd, qdd, F, out_idx, rec_x, rec_u, rec_q, rec_qdd, rec_mag, rec_it,
             sat=False, i_lo=0.0, i_hi=0.0, sat_excess=np.zeros(1)):
     """Time loop over one block (state arrays x, u, q, qd, qdd, F updated in place).
@@ -515,18 +674,47 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     (the control law's acceleration feed-through path is cut), so with ``sat`` the force
     remainder is solved by Newton (:func:`_sat_newton_step`). ``i_lo``, ``sat_excess`` unused.
 
-    Plain numpy code that numba can compile unchanged (it is jitted when numba is installed,
-    ~20x faster; otherwise it runs as ordinary Python)."""
+    Matrices come transposed (``*t``; ``phiF`` = phi^T's transpose, the magnet-to-mode force map):
+    ``_mvt_into`` then sums each product over the same index order as a row-by-row product, in a loop
+    the compiler can vectorise.
+
+    Work arrays are allocated once per block and every per-step quantity is computed in place,
+    element by element in the order of the vector expressions it replaces (the same rounding; an
+    allocation per small vector was half the compiled loop's time). Plain code that numba compiles
+    (it is jitted when numba is installed; otherwise it runs as ordinary Python, much slower)."""
     m = F0.size
     m2 = 2 * m
     m3 = 3 * m
     m4 = 4 * m
     nx = x.size
+    nq = q.size
     a4 = 4.0 / (h * h)
     a2 = 2.0 / h
     ns = vel.size
     xu = np.empty(nx + u.size)
+    xp = np.empty(nx)
+    oxp = np.empty(OLt.shape[1])
+    o = np.empty(GLt.shape[1])
+    o2 = np.empty(Ot.shape[1])
+    o3 = np.empty(Ot.shape[1])
+    qp = np.empty(nq)
+    qdp = np.empty(nq)
+    gF = np.empty(nq)
     ucur = np.empty(m3)
+    yp = np.empty(m)
+    ydp = np.empty(m)
+    base = np.empty(m)
+    Sb = np.zeros(m)
+    y = np.empty(m)
+    yd = np.empty(m)
+    pg = np.empty(m)
+    t1 = np.empty(m)
+    t2 = np.empty(m)
+    gap = np.empty(m)
+    cur = np.empty(m)
+    cur_cmd = np.empty(m)
+    Ft = np.empty(m)
+    res = np.empty(m)
     N = u[m2:].copy()
     xc = x.copy()
     uc = u.copy()
@@ -538,88 +726,124 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     it_max = 0
     n_out = out_idx.size
     for i in range(ns):
-        phi = phi_all[i]
-        phiT = phiT_all[i]
-        dphi = dphi_all[i]
+        phit = phit_all[i]
+        phiF = phiF_all[i]
+        dphit = dphit_all[i]
         v = vel[i]
         xu[:nx] = xc
         xu[nx:] = uc
-        xp = _mv(ABd0, xu)
-        oxp = _mv(OL, xp)
-        qp = (a4 * qc + (4.0 / h) * qdc + qddc + c2zw * (a2 * qc + qdc)) * gq
-        qdp = a2 * (qp - qc) - qdc
-        yp = r_all[i] + _mv(phi, qp)
-        ydp = rd_all[i] + _mv(phi, qdp) + v * (_mv(dphi, qp))
-        Sb = np.zeros(m)
+        _mvt_into(xp, ABd0t, xu)
+        _mvt_into(oxp, OLt, xp)
+        for k in range(nq):
+            qp[k] = (a4 * qc[k] + (4.0 / h) * qdc[k] + qddc[k] + c2zw[k] * (a2 * qc[k] + qdc[k])) * gq[k]
+            qdp[k] = a2 * (qp[k] - qc[k]) - qdc[k]
+        _mvt_into(t1, phit, qp)
+        for a in range(m):
+            yp[a] = r_all[i, a] + t1[a]
+        _mvt_into(t1, phit, qdp)
+        _mvt_into(t2, dphit, qp)
+        for a in range(m):
+            ydp[a] = rd_all[i, a] + t1[a] + v * t2[a]
         if newmark:
-            base = F0 + oxp[m4:] + _mv(Ey, yp) + _mv(Eyd, ydp)
-            Sb = _mv(S_all[i], base)
+            _mvt_into(t1, Eyt, yp)
+            _mvt_into(t2, Eydt, ydp)
+            for a in range(m):
+                base[a] = F0[a] + oxp[m4 + a] + t1[a] + t2[a]
+            _mvt_into(Sb, St_all[i], base)
         it = 0
         while it < max_iter:
             it += 1
             if newmark:
-                Fc = Sb + _mv(SEN_all[i], N)
-            gF = gq * (_mv(phiT, Fc))
-            pg = _mv(phi, gF)
-            y = yp - pg
-            yd = ydp - a2 * pg - v * (_mv(dphi, gF))
-            ucur[:m] = y
-            ucur[m:m2] = yd
-            ucur[m2:] = N
-            o = oxp + _mv(GL, ucur)
-            gap = g0 + y - o[:m]
-            cur = I0 + o[m3:m4]
+                _mvt_into(t1, SENt_all[i], N)
+                for a in range(m):
+                    Fc[a] = Sb[a] + t1[a]
+            _mvt_into(gF, phiF, Fc)
+            for k in range(nq):
+                gF[k] = gq[k] * gF[k]
+            _mvt_into(pg, phit, gF)
+            _mvt_into(t2, dphit, gF)
+            for a in range(m):
+                y[a] = yp[a] - pg[a]
+                yd[a] = ydp[a] - a2 * pg[a] - v * t2[a]
+                ucur[a] = y[a]
+                ucur[m + a] = yd[a]
+                ucur[m2 + a] = N[a]
+            _mvt_into(o, GLt, ucur)
+            for k in range(o.size):
+                o[k] = oxp[k] + o[k]
+            for a in range(m):
+                gap[a] = g0 + y[a] - o[a]
+                cur[a] = I0 + o[m3 + a]
             if sat:
-                cur_cmd = cur
-                cur = I0 + i_hi * np.tanh((cur_cmd - I0) / i_hi)
-            Ft = Cc * (cur / gap) ** 2
+                for a in range(m):
+                    cur_cmd[a] = cur[a]
+                    cur[a] = I0 + i_hi * np.tanh((cur_cmd[a] - I0) / i_hi)
+            for a in range(m):
+                Ft[a] = Cc[a] * (cur[a] / gap[a]) ** 2
             if newmark:
-                res = Ft - Fc
+                for a in range(m):
+                    res[a] = Ft[a] - Fc[a]
                 if sat:
-                    N = N - _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GL, phi, phiT, dphi,
-                                             gq, SEN_all[i], a2, v, m)
+                    dN = _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GLt, phit, phiF, dphit,
+                                          gq, SENt_all[i], a2, v, m)
+                    for a in range(m):
+                        N[a] = N[a] - dN[a]
                 else:
-                    N = N + res
-                Fc = Ft
-                if np.abs(res).max() < tol_abs:
+                    for a in range(m):
+                        N[a] = N[a] + res[a]
+                Fc[:] = Ft
+                if _absmax(res) < tol_abs:
                     break
             else:
-                res = Ft - (F0 + o[m4:])      # o[m4:] = F_lin - F0 + N
-                dF = np.abs(Ft - Fc).max()
-                dN = np.abs(res).max()
-                Fc = Ft
-                N = N + res
+                for a in range(m):
+                    res[a] = Ft[a] - (F0[a] + o[m4 + a])      # o[m4:] = F_lin - F0 + N
+                    t1[a] = Ft[a] - Fc[a]
+                dF = _absmax(t1)
+                dN = _absmax(res)
+                Fc[:] = Ft
+                for a in range(m):
+                    N[a] = N[a] + res[a]
                 if dF < tol_abs and dN < tol_abs:
                     break
         if it > it_max:
             it_max = it
-        gF = gq * (_mv(phiT, Fc))
-        qn = qp - gF
-        pg = _mv(phi, gF)
-        y = yp - pg
-        yd = ydp - a2 * pg - v * (_mv(dphi, gF))
-        ucur[:m] = y
-        ucur[m:m2] = yd
-        ucur[m2:] = N
-        uc = ucur.copy()
-        xc = xp + _mv(Bd1, uc)
-        qddc = a4 * (qn - qc) - (4.0 / h) * qdc - qddc
-        qdc = a2 * (qn - qc) - qdc
-        qc = qn
+        _mvt_into(gF, phiF, Fc)
+        for k in range(nq):
+            gF[k] = gq[k] * gF[k]
+        _mvt_into(pg, phit, gF)
+        _mvt_into(t2, dphit, gF)
+        for a in range(m):
+            y[a] = yp[a] - pg[a]
+            yd[a] = ydp[a] - a2 * pg[a] - v * t2[a]
+            uc[a] = y[a]
+            uc[m + a] = yd[a]
+            uc[m2 + a] = N[a]
+        _mvt_into(xc, Bd1t, uc)
+        for k in range(nx):
+            xc[k] = xp[k] + xc[k]
+        for k in range(nq):
+            qn = qp[k] - gF[k]
+            qddc[k] = a4 * (qn - qc[k]) - (4.0 / h) * qdc[k] - qddc[k]
+            qdc[k] = a2 * (qn - qc[k]) - qdc[k]
+            qc[k] = qn
         if j < n_out and out_idx[j] == i:
-            o2 = _mv(O, xc) + _mv(OD, uc)
-            gap = g0 + y - o2[:m]
-            cur = I0 + o2[m3:m4]
-            if sat:
-                cur = I0 + i_hi * np.tanh((cur - I0) / i_hi)
+            _mvt_into(o2, Ot, xc)
+            _mvt_into(o3, ODt, uc)
+            for k in range(o2.size):
+                o2[k] = o2[k] + o3[k]
+            for a in range(m):
+                gap[a] = g0 + y[a] - o2[a]
+                cur[a] = I0 + o2[m3 + a]
+                if sat:
+                    cur[a] = I0 + i_hi * np.tanh((cur[a] - I0) / i_hi)
+                rec_mag[j, 0, a] = o2[m2 + a]
+                rec_mag[j, 1, a] = gap[a]
+                rec_mag[j, 2, a] = cur[a]
+                rec_mag[j, 3, a] = Cc[a] * (cur[a] / gap[a]) ** 2
             rec_x[j] = xc
             rec_u[j] = uc
             rec_q[j] = qc
             rec_qdd[j] = qddc
-            rec_mag[j, 0] = o2[m2:m3]
-            rec_mag[j, 1] = gap
-            rec_mag[j, 2] = cur
-            rec_mag[j, 3] = Cc * (cur / gap) ** 2
             rec_it[j] = it_max
             it_max = 0
             j += 1
@@ -631,14 +855,31 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OL, GL, ABd0, Bd1, O,
     F[:] = Fc
 
 
+def _absmax(v):
+    """max |v_i| (NaN if any is NaN, like np.abs(v).max())."""
+    r = 0.0
+    for a in range(v.size):
+        e = abs(v[a])
+        if e > r or e != e:
+            r = e
+            if e != e:
+                return e
+    return r
+
+
 try:  # optional accelerator
     import numba as _numba
-    _mv = _numba.njit(cache=True)(_mv_loop)
+    _mvt_into = _numba.njit(cache=True)(_mvt_into)
+    _absmax = _numba.njit(cache=True)(_absmax)
     _sat_newton_step = _numba.njit(cache=True)(_sat_newton_step)
     _KERNEL = _numba.njit(cache=True)(_kernel)
+    _FREE = _numba.njit(cache=True)(_free_steps)
     HAVE_NUMBA = True
-except Exception:  # pragma: no cover - numba missing or broken: plain Python (same results, slower)
+except Exception:  # pragma: no cover - numba missing or broken: plain Python (slower; BLAS products)
+    def _mvt_into(out, At, x):
+        np.dot(x, At, out=out)
     _KERNEL = _kernel
+    _FREE = _free_steps
     HAVE_NUMBA = False
 
 

@@ -180,57 +180,152 @@ class ModalBasis:
         return int(self.freq_hz.size)
 
     def _table(self) -> tuple:
-        """Mode shapes as nodal values on the full nodal DOF list of each span, (n_spans, ndof, nm)."""
+        """Per span: start, end, element count and length, the spans in order of their starts, each
+        span's first mode column (cols, n_spans + 1), its modes' nodal values on its full nodal DOF
+        list padded to the most modes of a span (T_pad, (n_spans, ndof, max modes)) and its mode
+        count. A mode lives on one span, so no table spans all modes (it grew with the square of
+        the line's length)."""
         tab = self.__dict__.get("_tab")
         if tab is None:
             n_el = max(fe.n_elements for fe in self.spans_fe)
             ndof = 2 * (n_el + 1)
-            T = np.zeros((len(self.spans_fe), ndof, self.n_modes))
-            col = 0
+            nmods = np.array([vec.shape[1] for vec in self.vectors], dtype=np.int64)
+            T_pad = np.zeros((len(self.spans_fe), ndof, max(int(nmods.max(initial=0)), 1)))
             for k, (fe, vec) in enumerate(zip(self.spans_fe, self.vectors)):
-                nmod = vec.shape[1]
-                T[k][fe.free_dofs, col:col + nmod] = vec
-                col += nmod
+                T_pad[k][fe.free_dofs, :vec.shape[1]] = vec
             starts = np.array([fe.span.start_m for fe in self.spans_fe])
             ends = np.array([fe.span.end_m for fe in self.spans_fe])
-            nels = np.array([fe.n_elements for fe in self.spans_fe])
+            nels = np.array([fe.n_elements for fe in self.spans_fe], dtype=np.int64)
             les = np.array([fe.element_length_m for fe in self.spans_fe])
-            order = np.argsort(starts)
-            tab = (T, starts, ends, nels, les, order)
+            order = np.argsort(starts).astype(np.int64)
+            cols = np.concatenate([[0], np.cumsum(nmods)]).astype(np.int64)
+            tab = (starts, ends, nels, les, order, cols, T_pad, nmods)
             object.__setattr__(self, "_tab", tab)
         return tab
 
-    def _eval(self, x_m, deriv: bool) -> np.ndarray:
-        T, starts, ends, nels, les, order = self._table()
+    def _locate(self, x: np.ndarray) -> tuple:
+        """Per point: span index k, on-the-line flag, element index e, local coordinate xi, element
+        length; and which spans hold a point."""
+        starts, ends, nels, les, order = self._table()[:5]
+        n = x.size
+        k, e = np.empty(n, np.int64), np.empty(n, np.int64)
+        valid = np.empty(n, np.bool_)
+        xi, le = np.empty(n), np.empty(n)
+        touched = np.zeros(len(self.spans_fe), np.bool_)
+        _LOCATE(x, np.ascontiguousarray(starts[order]), order, starts, ends, les, nels, k, valid, e, xi, le,
+                touched)
+        return k, valid, e, xi, le, touched
+
+    def span_of(self, x_m) -> np.ndarray:
+        """Index (into ``spans_fe``) of the span each point loads, -1 off the line."""
         x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
-        # span of each point: last span (by start) with start <= x; half-open except the last
-        pos = np.searchsorted(starts[order], x, side="right") - 1
-        valid = pos >= 0
-        k = order[np.clip(pos, 0, None)]
-        last = k == order[-1]
-        valid &= (x < ends[k]) | (last & (x <= ends[k]))
-        le = les[k]
-        xl = x - starts[k]
-        e = np.clip(np.floor(xl / le).astype(np.int64), 0, nels[k] - 1)
-        xi = xl / le - e
-        xi2 = xi * xi
+        k, valid, *_ = self._locate(x)
+        return np.where(valid, k, -1)
+
+    def mode_columns(self, spans) -> np.ndarray:
+        """Indices of the modes of ``spans`` (span indices, ascending): ascending mode indices."""
+        cols = self._table()[5]
+        return np.concatenate([np.arange(cols[s], cols[s + 1]) for s in spans] or [np.zeros(0, np.int64)])
+
+    def _eval(self, x_m, derivs: tuple[bool, ...], spans=None, own: bool = False) -> list:
+        """Shapes (False) and/or slopes (True) at x_m, one (len(x), n_columns) array each; ``own``:
+        the columns of the spans the points lie on, those spans first in the list."""
+        cols, T_pad, nmods = self._table()[5:]
+        x = np.atleast_1d(np.asarray(x_m, dtype=float)).ravel()
+        k, valid, e, xi, le, touched = self._locate(x)
+        if own:
+            spans = np.flatnonzero(touched)
+        if spans is None:            # every mode of the line: columns as in the basis
+            first, n_out = cols[:-1].astype(np.int64), self.n_modes
+        else:                        # the modes of ``spans`` only, in that order (mode_columns)
+            first = np.full(len(self.spans_fe), -1, np.int64)
+            n_out = 0
+            for s in spans:
+                first[s] = n_out
+                n_out += cols[s + 1] - cols[s]
+            missing = np.flatnonzero(touched & (first < 0))
+            if missing.size:
+                raise ValueError(f"shapes: points lie on span {int(missing[0])}, which is not among {list(spans)}")
+        outs = []
+        for deriv in derivs:
+            out = np.zeros((x.size, n_out))
+            _HERMITE_ROWS(k, valid, e, xi, le, T_pad, nmods, first, bool(deriv), out)
+            outs.append(out)
+        return [spans] + outs if own else outs
+
+    def shapes_at(self, x_m, spans=None) -> np.ndarray:
+        """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans. ``spans`` (ascending span
+        indices covering every point on the line): only their modes' columns (``mode_columns``)."""
+        return self._eval(x_m, (False,), spans)[0]
+
+    def slopes_at(self, x_m, spans=None) -> np.ndarray:
+        """d phi_j / dx at x: (len(x), n_modes) (``spans`` as for ``shapes_at``)."""
+        return self._eval(x_m, (True,), spans)[0]
+
+    def local_shapes_at(self, x_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(spans, shapes, slopes): the spans the points lie on (ascending) and ``shapes_at`` /
+        ``slopes_at`` with those spans' columns only (``mode_columns(spans)``)."""
+        spans, phi, dphi = self._eval(x_m, (False, True), own=True)
+        return spans, phi, dphi
+
+
+def _locate_points(x, starts_sorted, order, starts, ends, les, nels, k, valid, e, xi, le, touched):
+    """``ModalBasis._locate`` point by point: the span of x is the last span (by start) with start
+    <= x, half-open except the last span; element and local coordinate on it."""
+    last_span = order[order.size - 1]
+    for p in range(x.size):
+        xp = x[p]
+        pos = np.searchsorted(starts_sorted, xp, side="right") - 1
+        s = order[max(pos, 0)]
+        ok = pos >= 0 and (xp < ends[s] or (s == last_span and xp <= ends[s]))
+        k[p] = s
+        valid[p] = ok
+        ln = les[s]
+        xl = xp - starts[s]
+        ep = min(max(int(np.floor(xl / ln)), 0), nels[s] - 1) if ok else 0
+        e[p] = ep
+        xi[p] = xl / ln - ep
+        le[p] = ln
+        if ok:
+            touched[s] = True
+
+
+def _hermite_rows(k, valid, e, xi, le, T_pad, nmods, first, deriv, out):
+    """out[p, first[k] + j] = mode j of span k = k[p] at point p: the Hermite interpolation of its
+    nodal values on element e[p] at local coordinate xi[p] (written by hand: a point only needs its
+    own span's few modes; numpy's per-span gathers were most of the twin's shape evaluation)."""
+    for p in range(k.size):
+        if not valid[p]:
+            continue
+        s = k[p]
+        c0 = first[s]
+        x1 = xi[p]
+        x2 = x1 * x1
+        ln = le[p]
         if deriv:
-            H = (((-6 * xi + 6 * xi2) / le), 1 - 4 * xi + 3 * xi2, ((6 * xi - 6 * xi2) / le), -2 * xi + 3 * xi2)
+            h0 = (-6 * x1 + 6 * x2) / ln
+            h1 = 1 - 4 * x1 + 3 * x2
+            h2 = (6 * x1 - 6 * x2) / ln
+            h3 = -2 * x1 + 3 * x2
         else:
-            xi3 = xi2 * xi
-            H = (1 - 3 * xi2 + 2 * xi3, le * (xi - 2 * xi2 + xi3), 3 * xi2 - 2 * xi3, le * (-xi2 + xi3))
-        out = H[0][:, None] * T[k, 2 * e] + H[1][:, None] * T[k, 2 * e + 1] \
-            + H[2][:, None] * T[k, 2 * e + 2] + H[3][:, None] * T[k, 2 * e + 3]
-        out[~valid] = 0.0
-        return out
+            x3 = x2 * x1
+            h0 = 1 - 3 * x2 + 2 * x3
+            h1 = ln * (x1 - 2 * x2 + x3)
+            h2 = 3 * x2 - 2 * x3
+            h3 = ln * (-x2 + x3)
+        r = 2 * e[p]
+        for j in range(nmods[s]):
+            out[p, c0 + j] = h0 * T_pad[s, r, j] + h1 * T_pad[s, r + 1, j] + h2 * T_pad[s, r + 2, j] \
+                + h3 * T_pad[s, r + 3, j]
 
-    def shapes_at(self, x_m) -> np.ndarray:
-        """Mode shapes phi_j(x): (len(x), n_modes); zero off the spans."""
-        return self._eval(x_m, False)
 
-    def slopes_at(self, x_m) -> np.ndarray:
-        """d phi_j / dx at x: (len(x), n_modes)."""
-        return self._eval(x_m, True)
+try:  # optional accelerator (as in coupling: the same code runs as plain Python without numba)
+    import numba as _numba
+    _HERMITE_ROWS = _numba.njit(cache=True)(_hermite_rows)
+    _LOCATE = _numba.njit(cache=True)(_locate_points)
+except Exception:  # pragma: no cover
+    _HERMITE_ROWS = _hermite_rows
+    _LOCATE = _locate_points
 
 
 class Guideway:

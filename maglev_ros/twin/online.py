@@ -153,6 +153,50 @@ def periodic_random_irregularity(psd_name: str = "maglev_001", band_m: Sequence[
     return Irregularity(lambda q: np.interp(wrap(q), xs, rs), lambda q: np.interp(wrap(q), xs, ss))
 
 
+class _History:
+    """Twin output rows (times and named column blocks) appended per step, dropped from the front:
+    amortised growth in place (concatenating the whole history per measured block was a tenth of
+    the twin's time)."""
+
+    def __init__(self, keys: Sequence[str]):
+        self.keys = tuple(keys)
+        self._t = np.empty(0)
+        self._cols: dict[str, np.ndarray] = {}
+        self._lo = self._hi = 0
+
+    @property
+    def n_rows(self) -> int:
+        return self._hi - self._lo
+
+    def append(self, t: np.ndarray, cols: Mapping[str, np.ndarray]) -> None:
+        n = t.size
+        if self._hi + n > self._t.size:
+            live = self.n_rows
+            cap = max(2 * (live + n), 1024)
+            t_new = np.empty(cap)
+            t_new[:live] = self._t[self._lo:self._hi]
+            self._t = t_new
+            for k in self.keys:
+                old = self._cols.get(k)
+                a = np.empty((cap, cols[k].shape[1]))
+                if old is not None:
+                    a[:live] = old[self._lo:self._hi]
+                self._cols[k] = a
+            self._lo, self._hi = 0, live
+        self._t[self._hi:self._hi + n] = t
+        for k in self.keys:
+            self._cols[k][self._hi:self._hi + n] = cols[k]
+        self._hi += n
+
+    def view(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        lo, hi = self._lo, self._hi
+        return self._t[lo:hi], {k: a[lo:hi] for k, a in self._cols.items()}
+
+    def drop(self, n: int) -> None:
+        """Forget the n oldest rows."""
+        self._lo = min(self._lo + int(n), self._hi)
+
+
 def _set_path(doc: dict, parts: list[str], value: float, name: str) -> None:
     node: Any = doc
     for i, p in enumerate(parts[:-1]):
@@ -244,9 +288,11 @@ class OnlineTwin:
         if parameters:
             self.set_parameters(list(parameters), list(parameters.values()))
         # buffers
-        self._pending: deque[tuple[str, Block]] = deque()
-        self._buf_t: list[np.ndarray] = []
-        self._buf: dict[str, list[np.ndarray]] = {"gd": [], "ga": [], "ma": [], "mg": [], "ba": [], "ok": []}
+        # measured blocks waiting for the twin: [topic, block, first, last sample time (twin s; None
+        # until the twin has started)], in arrival order
+        self._pending: deque[list] = deque()
+        self._pending_newest_ns = -math.inf     # >= the newest stamp pending (drop_stale's quick test)
+        self._hist = _History(("gd", "ga", "ma", "mg", "ba", "ok"))
         self._seen_position = False
         self._seen_vehicle = False
         self._offsets = np.asarray(md.magnet_offsets_m if self.kind == "pass" else (), float)
@@ -395,7 +441,7 @@ class OnlineTwin:
 
     def _start(self, stamp_ns: int, position_m: float, speed_mps: float) -> None:
         if self.fs_hz is None:
-            rates = [b.sample_rate_hz for _t, b in self._pending]
+            rates = [e[1].sample_rate_hz for e in self._pending]
             self.fs_hz = max(rates) if rates else 1000.0
         dt_ns = int(round(1e9 / self.fs_hz))
         self.t0_ns = int(stamp_ns) - dt_ns
@@ -430,16 +476,12 @@ class OnlineTwin:
             last_bad = np.maximum(last_bad, self._uncovered_s)
             self._uncovered_s = float(last_bad[-1])
             ok = cov & (t - last_bad >= self.settle_s)
-        self._buf_t.append(t)
-        self._buf["gd"].append(res.guideway_disp_m)
-        self._buf["ga"].append(res.guideway_accel_mps2)
-        self._buf["ma"].append(res.magnet_accel_mps2)
-        self._buf["mg"].append(res.magnet_gap_m)
         # car body (rigid: heave + pitch at each sensor's x)
         vm = self.stepper.vehicle.model
         rows = np.array([vm.point_row("car", self.body_x[n]) for n in self._body_names]).reshape(-1, vm.n_dof)
-        self._buf["ba"].append(res.vehicle_acc_mps2 @ rows.T)
-        self._buf["ok"].append(ok.astype(float)[:, None])
+        self._hist.append(t, {"gd": res.guideway_disp_m, "ga": res.guideway_accel_mps2, "ma": res.magnet_accel_mps2,
+                              "mg": res.magnet_gap_m, "ba": res.vehicle_acc_mps2 @ rows.T,
+                              "ok": ok.astype(float)[:, None]})
 
     def _advance(self, t_end_s: float, speed_mps: float | None) -> None:
         self._record(self.stepper.advance(t_end_s, speed_mps))
@@ -526,7 +568,8 @@ class OnlineTwin:
             return self.on_position(block)
         if topic not in TOPIC_GROUPS or block.n_samples == 0:
             return []
-        self._pending.append((topic, block))
+        self._pending.append([topic, block, None, None])
+        self._pending_newest_ns = max(self._pending_newest_ns, block.stamp_ns)
         self._note_time(block)
         if self._profiler is not None and topic in _PROFILER_KEYS:
             self._seen_vehicle = True
@@ -545,48 +588,49 @@ class OnlineTwin:
 
     def _drop_stale(self) -> None:
         if not self._pending:
+            self._pending_newest_ns = -math.inf
             return
-        newest = max(b.stamp_ns for _t, b in self._pending)
+        if (self._pending_newest_ns - self._pending[0][1].stamp_ns) * 1e-9 <= self.max_pending_s:
+            return                  # the newest pending stamp is at most the running maximum
+        newest = self._pending_newest_ns = max(e[1].stamp_ns for e in self._pending)
         while self._pending and (newest - self._pending[0][1].stamp_ns) * 1e-9 > self.max_pending_s:
             self._pending.popleft()
             self.n_dropped += 1
 
     # ---------------------------------------------------------------------------- predictions
-    def _concat(self):
-        if len(self._buf_t) > 1:
-            self._buf_t = [np.concatenate(self._buf_t)]
-            for k in self._buf:
-                self._buf[k] = [np.concatenate(self._buf[k], axis=0)]
-        if not self._buf_t:
-            return None
-        return self._buf_t[0], {k: v[0] for k, v in self._buf.items()}
-
     def _flush(self) -> list[TwinOutput]:
-        if self.stepper is None or not self._pending:
+        if self.stepper is None or not self._pending or not self._hist.n_rows:
             return []
-        cat = self._concat()
-        if cat is None:
-            return []
-        t, buf = cat
+        t, buf = self._hist.view()
         t_cov = t[-1] + 1e-9
-        out, keep = [], deque()
-        while self._pending:
-            topic, blk = self._pending.popleft()
-            tb = self._rel(blk.stamp_ns) + np.arange(blk.n_samples) / blk.sample_rate_hz
-            if tb[-1] > t_cov:
-                keep.append((topic, blk))
-                continue
-            o = self._predict(topic, blk, tb, t, buf)
-            if o is not None:
-                out.append(o)
-        self._pending = keep
+        for e in reversed(self._pending):        # sample times once the twin's clock is known
+            if e[2] is not None:
+                break
+            blk = e[1]
+            e[2] = self._rel(blk.stamp_ns)
+            e[3] = e[2] + (blk.n_samples - 1) / blk.sample_rate_hz
+        out = []
+        if any(e[3] <= t_cov for e in self._pending):
+            keep = deque()
+            for e in self._pending:
+                topic, blk, first, last = e
+                if last > t_cov:
+                    keep.append(e)
+                    continue
+                tb = first + np.arange(blk.n_samples) / blk.sample_rate_hz
+                # the history's stretch around the block (np.interp copies the strided columns it
+                # is given; over the whole history that copy was most of a prediction's time)
+                lo = max(int(np.searchsorted(t, tb[0], side="right")) - 1, 0)
+                hi = int(np.searchsorted(t, tb[-1], side="left")) + 1
+                o = self._predict(topic, blk, tb, t[lo:hi], {k: v[lo:hi] for k, v in buf.items()})
+                if o is not None:
+                    out.append(o)
+            self._pending = keep
         # trim history older than the oldest pending block (keep 1 s margin)
-        t_keep = min([self._rel(b.stamp_ns) for _t, b in self._pending] + [t[-1]]) - 1.0
+        t_keep = min(min((e[2] for e in self._pending), default=t[-1]), t[-1]) - 1.0
         i = int(np.searchsorted(t, t_keep))
         if i > 0:
-            self._buf_t = [t[i:]]
-            for k in self._buf:
-                self._buf[k] = [buf[k][i:]]
+            self._hist.drop(i)
         return out
 
     def _predict(self, topic: str, blk: Block, tb: np.ndarray, t: np.ndarray, buf: dict) -> TwinOutput | None:

@@ -192,6 +192,30 @@ class OnlineUpdater:
         self._revision = int(rec["revision"])
         return publication_from_record(rec)
 
+    def new_recording(self) -> None:
+        """A recording has ended: its buffered streams and residual evidence are dropped (the next
+        recording's windows never reach into this one)."""
+        for b in self._buf.values():
+            b.clear()
+        self._res.clear()
+
+    def accept_recording_update(self, document: Mapping, data_used: Mapping) -> Publication | None:
+        """The ``maglev-params/1`` document of the whole-recording update (``pipeline.update_from_bags``,
+        what ``maglev-ros update`` writes), stored and adopted as it is: it replaces the parameters
+        it holds (an ambient-only update holds the guideway's; the gains stay as they were)."""
+        params = {n: dict(v) for n, v in document["parameters"].items()}
+        fit = {"layer": "recording end (maglev-ros update pipeline)",
+               "frequencies_hz": document.get("frequencies_hz"), "mac": document.get("mac"),
+               "magnet_accel_nrmse": document.get("magnet_accel_nrmse"),
+               "combinations": document.get("identifiable_combinations", [])}
+        pub = self._accept(params, dict(data_used), fit)
+        if pub is not None:
+            f = (document.get("frequencies_hz") or {}).get("measured")
+            self._last_freqs = None if f is None else np.asarray(f, float)
+            self.log.append(f"recording-end update accepted: rev {pub.revision} ("
+                            + ", ".join(f"{n} {v['value']:.5g}" for n, v in params.items()) + ")")
+        return pub
+
     # ------------------------------------------------------------------ guideway layer
     def changed(self, freqs: np.ndarray, std: np.ndarray) -> bool:
         if self._last_freqs is None or self._last_freqs.size != freqs.size:

@@ -195,11 +195,12 @@ def modal_target(modes: Sequence[Any], md: Metadata, config: TwinConfig, max_mod
 
 def identify_ambient(path: str | Path, fmax_hz: float | None = None, block_rows: int = 40,
                      max_order: int = 60) -> tuple[Metadata, Any, dict]:
-    """SSI-cov modes of an ambient bag's /testline/guideway/accel: (metadata, ModalResult, info)."""
-    from maglev_ros.bag_reader import BagReader
+    """SSI-cov modes of an ambient bag's /testline/guideway/accel: (metadata, ModalResult, info).
+    ``path``: a bag, or a :class:`~maglev_ros.bag_memory.MemoryBag` (a recording a node received)."""
+    from maglev_ros.bag_memory import open_reader, source_name
     from maglev_ros.modal.ssi_cov import SSICov
-    path = Path(path)
-    with BagReader(path) as r:
+    reader, path = open_reader(path), source_name(path)
+    with reader as r:
         md = r.metadata
         if md is None:
             raise UserError(f"{path}: no /testline/metadata; the updater needs sensor positions and the design")
@@ -356,11 +357,12 @@ def pass_evidence(rec: PassRecording, config: TwinConfig, line=None, *, magnet_f
 def read_pass(path: str | Path, config: TwinConfig | None = None) -> PassRecording:
     """Read a pass bag: vehicle accel/gap/position, the magnets with both channels, and the
     quasi-static deflection target when the bag has /testline/guideway/displacement on the
-    instrumented span (``config``: the twin whose static magnet forces are used; default nominal)."""
-    from maglev_ros.bag_reader import BagReader
+    instrumented span (``config``: the twin whose static magnet forces are used; default nominal).
+    ``path``: a bag, or a :class:`~maglev_ros.bag_memory.MemoryBag` (a recording a node received)."""
+    from maglev_ros.bag_memory import open_reader, source_name
     from maglev_ros.irregularity.profile import magnet_channel_pairs
-    path = Path(path)
-    with BagReader(path) as r:
+    reader, path = open_reader(path), Path(source_name(path))
+    with reader as r:
         md = r.metadata
         if md is None:
             raise UserError(f"{path}: no /testline/metadata; the updater needs the magnet offsets and the design")
@@ -453,6 +455,16 @@ class TwoLayerUpdate:
         return self.document
 
 
+def update_layers(samples: int = 60, polish_evals: int = 8, swarm: Sequence[int] | None = None,
+                  seed: int = 0) -> tuple[GuidewayLayer, MagnetLayer]:
+    """The two layers as ``maglev-ros update`` sets them from its options (``--samples``,
+    ``--polish-evals``, ``--swarm PARTICLES ITERATIONS``, ``--seed``): one place, so the updater
+    node's recording-end update runs the verb's settings."""
+    sw = {} if not swarm else {"n_particles": int(swarm[0]), "n_iterations": int(swarm[1])}
+    return (GuidewayLayer(seed=seed, **sw),
+            MagnetLayer(n_samples=samples, polish_max_nfev=polish_evals, seed=seed, **sw))
+
+
 def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
                      guideway_layer: GuidewayLayer | None = None, magnet_layer: MagnetLayer | None = None,
                      magnet_fs_hz: float = 500.0, max_window_s: float | None = None, max_modes: int = 4,
@@ -461,11 +473,13 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
     """Ambient bag -> modes -> guideway layer [+ static deflection of the passes] -> irregularity of
     each pass for the guideway-updated twin -> magnet layer on the passes. Returns the public
     document and the details (provenance says how each pass's irregularity was obtained).
-    ``log``: one-line messages (default: ``progress.note``)."""
+    Recordings are bag paths or :class:`~maglev_ros.bag_memory.MemoryBag` (what the ``updater``
+    node received). ``log``: one-line messages (default: ``progress.note``)."""
+    from maglev_ros.bag_memory import same_source, source_name
     t_start = time.perf_counter()
     say = log or progress.note
     for p in passes:                  # cheap input checks before the SSI of the ambient record
-        if Path(p).resolve() == Path(ambient).resolve():
+        if same_source(p, ambient):
             raise UserError(f"{p}: the same bag is given as --ambient and --pass")
     progress.stage("guideway modes of the ambient recording (SSI-cov)")
     md_a, modal_res, amb_info = identify_ambient(ambient)
@@ -474,8 +488,8 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
     say(f"ambient: {len(modal_res.modes)} modes identified, {target.n_modes} matched to FE modes of span {span.span_id}")
     recs = []
     progress.stage("read the passes", total=len(passes))
-    for p in progress.steps(passes, str):
-        if Path(p).resolve() == Path(ambient).resolve():
+    for p in progress.steps(passes, source_name):
+        if same_source(p, ambient):
             raise UserError(f"{p}: the same bag is given as --ambient and --pass")
         rec = read_pass(p, cfg0)
         if rec.md.vehicle.get("magnet_offsets_m") is None:

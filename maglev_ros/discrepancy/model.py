@@ -32,6 +32,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from maglev_ros.irregularity.twin_input import position_at
 from maglev_ros.twin.coupling import PassResult, TwinStepper
 from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config_from_metadata, with_levitation
 from maglev_ros.twin.guideway import assemble_span
@@ -309,7 +310,9 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
     tau = float(rec.sensor_delay_s)
     t0 = max(rec.t0_s - tau, float(tp[0])) - 1.0 / fs
-    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
+    # extrapolated before the first position sample: clamped, the twin ran one sample ahead of the
+    # recording whenever the position stream starts with the sensors
+    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(position_at(t0, tp, xp, vp)),
                        start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0,
                        irregularity=rec.irregularity)
     parts = []

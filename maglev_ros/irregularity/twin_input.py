@@ -77,7 +77,7 @@ from maglev_ros.errors import UserError
 from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
-__all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
+__all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse", "position_at",
            "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M", "SharedRail", "shared_twin_inputs"]
 
 DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
@@ -210,7 +210,7 @@ def _position_arrays(position):
     return t[ok], p[ok], v[ok]
 
 
-def _position_at(t, tp, pos, spd) -> np.ndarray:
+def position_at(t, tp, pos, spd) -> np.ndarray:
     """Measured position at times t: linear inside the record, extrapolated with the end speeds."""
     t = np.asarray(t, float)
     x = np.interp(t, tp, pos)
@@ -242,7 +242,7 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
     t_start = t[0] - tau - 1.0 / fs
     t_end = t[-1] - tau
     st = TwinStepper(config, line, sensors=sensors, irregularity=irregularity, fs_out_hz=fs,
-                     start_position_m=float(_position_at(t_start, tp, pos, spd)),
+                     start_position_m=float(position_at(t_start, tp, pos, spd)),
                      start_speed_mps=float(np.interp(t_start, tp, spd)), t0_s=t_start,
                      method=method, dt_max_s=dt_max_s, init="rest")
     st._init_static()
@@ -253,7 +253,7 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
         parts.append(st.advance(tn, float(np.interp(tn, tp, spd))))
         tc = tn
     res = PassResult.concat(parts)
-    drift = float(np.max(np.abs(res.position_m - _position_at(res.time_s, tp, pos, spd)))) \
+    drift = float(np.max(np.abs(res.position_m - position_at(res.time_s, tp, pos, spd)))) \
         if res.n_samples else 0.0
     from dataclasses import replace
     res = replace(res, time_s=res.time_s + tau)

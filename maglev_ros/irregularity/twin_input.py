@@ -77,7 +77,7 @@ from maglev_ros.errors import UserError
 from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
-__all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse", "position_at",
+__all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
            "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M", "SharedRail", "shared_twin_inputs"]
 
 DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
@@ -210,14 +210,6 @@ def _position_arrays(position):
     return t[ok], p[ok], v[ok]
 
 
-def position_at(t, tp, pos, spd) -> np.ndarray:
-    """Measured position at times t: linear inside the record, extrapolated with the end speeds."""
-    t = np.asarray(t, float)
-    x = np.interp(t, tp, pos)
-    return x + np.where(t < tp[0], (t - tp[0]) * spd[0], 0.0) \
-        + np.where(t > tp[-1], (t - tp[-1]) * spd[-1], 0.0)
-
-
 def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
                            sensor_delay_s: float = 0.0, method: str = "newmark",
                            dt_max_s: float | None = None, sensors: Any = None,
@@ -233,28 +225,22 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
     position - measured position| and the ``TwinStepper`` (vehicle model, magnet offsets).
     """
     from maglev_ros.twin.coupling import PassResult, TwinStepper
+    from maglev_ros.twin.trajectory import MeasuredTrajectory, drive
     t = np.asarray(time_s, float)
     if t.size < 2:
         raise UserError("vehicle accel: fewer than 2 samples to predict")
     fs = 1.0 / float(np.median(np.diff(t)))
-    tp, pos, spd = _position_arrays(position)
+    traj = MeasuredTrajectory.from_samples(*_position_arrays(position))
     tau = float(sensor_delay_s)
     t_start = t[0] - tau - 1.0 / fs
     t_end = t[-1] - tau
     st = TwinStepper(config, line, sensors=sensors, irregularity=irregularity, fs_out_hz=fs,
-                     start_position_m=float(position_at(t_start, tp, pos, spd)),
-                     start_speed_mps=float(np.interp(t_start, tp, spd)), t0_s=t_start,
+                     start_position_m=float(traj.position_at(t_start)),
+                     start_speed_mps=float(traj.speed_at(t_start)), t0_s=t_start,
                      method=method, dt_max_s=dt_max_s, init="rest")
     st._init_static()
-    parts = []
-    tc = t_start
-    while tc < t_end - 0.5 / fs:
-        tn = min(t_end + 0.5 / fs, tc + block_s)
-        parts.append(st.advance(tn, float(np.interp(tn, tp, spd))))
-        tc = tn
-    res = PassResult.concat(parts)
-    drift = float(np.max(np.abs(res.position_m - position_at(res.time_s, tp, pos, spd)))) \
-        if res.n_samples else 0.0
+    res = PassResult.concat(drive(st, traj, t_end + 0.5 / fs, block_s))
+    drift = float(np.max(np.abs(res.position_m - traj.position_at(res.time_s)))) if res.n_samples else 0.0
     from dataclasses import replace
     res = replace(res, time_s=res.time_s + tau)
     return res, drift, st

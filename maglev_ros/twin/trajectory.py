@@ -5,8 +5,10 @@ random-walks away from the positions (millimetres over a pass, at 5 m/s a millis
 error, which a magnet's response to the rail's short waves does not forgive), and the raw
 positions carry their own noise. So the twin is driven along the positions smoothed by a local
 cubic fit over ``smooth_s`` (Savitzky-Golay: the vehicle's speed changes over seconds, the sensor
-noise from sample to sample), at a constant speed per block that lands it on that trajectory at
-each block's end. Before the first and after the last position sample the trajectory is
+noise from sample to sample). Each block ramps the speed to the trajectory's speed (the fit's
+derivative) at the block's end, plus the correction that brings the position back onto the
+trajectory; the position error then dies out within two blocks (the correction is half the
+error a plain ramp would leave, which makes the two-step recursion deadbeat). Before the first and after the last position sample the trajectory is
 extrapolated with the end speeds (the twin starts one sample before the first sensor sample).
 """
 from __future__ import annotations
@@ -38,7 +40,7 @@ class MeasuredTrajectory:
             dt = float(np.median(np.diff(t)))
             n = int(round(smooth_s / dt)) | 1           # odd window
             if dt > 0 and n > POLYORDER + 1 and n <= t.size:
-                x = savgol_filter(x, n, POLYORDER, mode="interp")
+                x, v = (savgol_filter(x, n, POLYORDER, deriv=d, delta=dt, mode="interp") for d in (0, 1))
         return cls(t, x, v)
 
     def position_at(self, t_s) -> np.ndarray:
@@ -55,9 +57,9 @@ class MeasuredTrajectory:
 def drive(stepper, trajectory: MeasuredTrajectory, t_end_s: float, block_s: float = 0.25,
           advance: Callable | None = None) -> list:
     """Advance ``stepper`` (a :class:`~maglev_ros.twin.coupling.TwinStepper`) to its last output
-    sample at or before ``t_end_s`` along ``trajectory``, block by block at a constant speed that
-    ends each block on the trajectory. ``advance(stepper, t, speed)`` replaces
-    ``stepper.advance(t, speed)`` (e.g. with a force law added). Returns the blocks' results."""
+    sample at or before ``t_end_s`` along ``trajectory``, block by block (speed ramps, see the
+    module). ``advance(stepper, t, speed)`` replaces ``stepper.advance(t, speed)`` (e.g. with a
+    force law added). Returns the blocks' results."""
     step = advance or (lambda st, t, v: st.advance(t, v))
     fs = float(stepper.fs_out_hz)
     parts = []
@@ -67,7 +69,9 @@ def drive(stepper, trajectory: MeasuredTrajectory, t_end_s: float, block_s: floa
         t_next = stepper.t0_s + k_out / fs
         if t_next <= t_now + 0.5 / fs:
             break
-        v = (float(trajectory.position_at(t_next)) - stepper.position_m) / (t_next - t_now)
-        stepper.speed_mps = v
+        h = t_next - t_now
+        v_traj = float(trajectory.speed_at(t_next))
+        x_ramp = stepper.position_m + 0.5 * (stepper.speed_mps + v_traj) * h
+        v = v_traj + (float(trajectory.position_at(t_next)) - x_ramp) / h
         parts.append(step(stepper, t_next, v))
     return parts

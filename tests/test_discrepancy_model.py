@@ -147,3 +147,28 @@ def test_saturated_current_stays_inside_the_headroom_and_gaps_grow():
     # tanh compression of the peak: the effective excursion is at most L tanh(I_demand / L) with
     # I_demand >= the unsaturated peak (the saturated magnet asks for more, never less)
     assert d1.max() >= lim * math.tanh(peak / lim) * 0.9
+
+
+def test_the_twin_follows_the_measured_position_when_the_position_stream_starts_with_the_sensors():
+    """Where the position stream starts with the sensors, the twin (which starts one sample before
+    the first sample) must be placed by extrapolating with the speed, not at the first position:
+    clamped, it ran one sample period ahead of the recording for the whole pass."""
+    from dataclasses import replace
+    from pathlib import Path
+    from maglev_ros.discrepancy.model import simulate
+    from maglev_ros.discrepancy.recording import load_recording
+    rec = load_recording(Path(__file__).resolve().parents[1] / "bags" / "paper_pass")
+    tp = rec.position_time_s
+    t_first = max(rec.t0_s, float(tp[0]))
+    keep = tp >= t_first
+    chans = {n: replace(c, time_s=c.time_s[c.time_s >= t_first][:3000], values=c.values[c.time_s >= t_first][:3000])
+             for n, c in rec.channels.items() if c.group in ("vehicle_accel", "gap")}
+    rec = replace(rec, channels=chans, position_time_s=tp[keep], position_m=rec.position_m[keep],
+                  speed_mps=rec.speed_mps[keep])
+    fs = max(c.sample_rate_hz for c in chans.values())
+    res = simulate(base_spec(rec.metadata), rec)
+    inside = (res.time_s >= rec.position_time_s[0]) & (res.time_s <= rec.position_time_s[-1])
+    measured = np.interp(res.time_s[inside], rec.position_time_s, rec.position_m)
+    v = float(np.mean(rec.speed_mps))
+    # within a quarter of the distance travelled in one sample period (the speed integration's drift)
+    assert np.max(np.abs(res.position_m[inside] - measured)) < 0.25 * v / fs

@@ -148,7 +148,9 @@ def test_unloaded_profile_matches_hidden_truth_in_stated_band(name):
     spd = c["pos"].data[:, 1]
     v_band = 20 / 3.6 if c["uneven"] else c["kmh"] / 3.6   # slowest speed (5th percentile)
     assert ti.max_wavelength_m == pytest.approx(v_band / (2 * ti.highpass_hz), rel=0.02)
-    assert ti.min_wavelength_m == pytest.approx(max(4 * 0.02, 4 * spd.max() / FS_HZ), rel=0.02)
+    # the grid follows the data: one sample step at the top speed (two magnets), at most 2 cm
+    assert ti.spacing_m == pytest.approx(min(0.02, spd.max() / FS_HZ), rel=1e-6)
+    assert ti.min_wavelength_m == pytest.approx(max(4 * ti.spacing_m, 4 * spd.max() / FS_HZ), rel=0.02)
     assert ti.min_wavelength_m < 0.25            # keeps the short waves that drive the magnets
     # the loaded -> unloaded iteration converged and removed a real girder deflection
     assert ti.converged and 1 <= ti.iterations <= 4

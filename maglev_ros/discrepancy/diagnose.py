@@ -39,18 +39,23 @@ class DiagnoseConfig:
     dropout_min_s: float = 0.1
     dt_max_s: float | None = None     # integration step of the diagnosing twin (None: design numerics)
     irregularity: bool = True         # drive the twin with the irregularity reconstructed from each pass
-    # the diagnosing twin's rail keeps the long waves that drive the car body (0-6 Hz): time high-pass
-    # 0.6 Hz, longest wave = pass speed / (band_factor x high-pass), the band-pass edge trimmed by
-    # trim_wavelengths of it at each end and edge_s seconds dropped at the ends of each stretch (the
-    # profiler's stated-band defaults 0.8 Hz / 2.0 / 1.0 / 1.5 / f_c cut the 15-60 m waves: on clean
-    # cases the body channels' NRMSE was 0.4-0.7, 0.03-0.06 with the true rail; docs/irregularity.md).
-    # The irregularity verb's own rule (corner from the pass, band factor 2; None here) cut a slow
-    # foreign pass's magnet misfit from 0.38 to 0.17 but raised fast passes' car-body misfit (a cubic
-    # air spring no longer found): a rule serving both is open
-    irregularity_highpass_hz: float | None = 0.6
+    # the diagnosing twin's rail keeps the long waves that drive the car body (0-6 Hz): the time high-pass
+    # follows the pass (None: the lowest corner whose filter settling takes at most half the longest
+    # clean stretch, the irregularity verb's rule; 0.52 Hz on an 8.5 s pass, 0.22-0.41 Hz on 11-20 s
+    # ones), the longest wave = pass speed / (band_factor x corner) with band factor 1 (the verb's 2 cut
+    # the 15-60 m waves of fast passes: a cubic air spring was no longer found), the band-pass edge
+    # trimmed by trim_wavelengths of it at each end and the integrator's edges 0.6 / corner (edge_s None).
+    # A fixed 0.6 Hz corner cut a slow foreign pass's 5-10 m waves by 60-80 % (1.5-8 m correlation with
+    # the true rail 0.93-0.99; 0.995 with the pass's own corner). The short end follows the data too
+    # (irregularity.twin_input: a grid of one sample step, the Wiener gain of the noise measured on the pass)
+    irregularity_highpass_hz: float | None = None
     irregularity_band_factor: float = 1.0
     irregularity_trim_wavelengths: float = 0.5
-    irregularity_edge_s: float | None = 1.875
+    irregularity_edge_s: float | None = None
+    # passes over one line share their short waves (every pass's magnets average the same rail: half
+    # the noise with two passes; a foreign clean case's twin floor at its true parameters 0.110 -> 0.102);
+    # kept apart when the passes differ by more than their noise (another rail, a position shift)
+    irregularity_shared: bool = True
     base_refit_nfev: int = 4          # calibration steps after the irregularity is rebuilt
     # besides the n_top best-screened: the best of every further effect and every girder/bearing
     # hypothesis of the spans the strongest guideway mismatches name (False: the n_top only)

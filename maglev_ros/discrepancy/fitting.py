@@ -377,8 +377,8 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=No
         rows = residual_rows(base.spec, rds, select or levitation_items(hyp.location["channels"]))
         if rows.size != base.r0.size or not rows.any():
             rows = None
-    # a resonance frequency makes the RSS multimodal in the parameter: a finer first grid (blind case
-    # 35, car body at 13 Hz: the 4-point grid's bracket 10.7-25 Hz settled at 15.6 Hz)
+    # a resonance frequency makes the RSS multimodal in the parameter: a finer first grid (a car body
+    # at 13 Hz: the 4-point grid's bracket 10.7-25 Hz settled at 15.6 Hz)
     maxiter = 14 if hyp.effect == "carbody_flexibility" else 9
     return fit_1d(base, hyp, rds, maxiter=maxiter, upper=upper, rows=rows)
 

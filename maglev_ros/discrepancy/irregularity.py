@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from types import SimpleNamespace
+from typing import Sequence
 
 import numpy as np
 
@@ -51,32 +52,100 @@ def sensor_delay_s(metadata) -> float:
     return max(0.0, float(d))
 
 
-def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, spacing_m: float = 0.02,
+def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float | None = 0.8, spacing_m: float | None = None,
                            margin_m: float = 1.0, max_iterations: int = 3, denoise: bool = True,
                            log=None, **profile_kw) -> Recording:
     """``rec`` with the irregularity reconstructed for the twin of ``spec`` (a :class:`.model.ModelSpec`:
     its calibrated config and spans). Unchanged (with a logged reason) when the pass has no magnet
-    with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: keep only
-    what the magnets agree on (:mod:`maglev_ros.irregularity.denoise`; needs two or more magnets).
+    with both an acceleration and a gap channel, or the reconstruction fails. ``denoise``: the Wiener
+    gain of the rail and error spectra measured on the pass (:mod:`maglev_ros.irregularity.denoise`;
+    needs two or more magnets). ``spacing_m`` None: the grid follows the data (one sample step at the
+    top speed, at most 2 cm; :func:`~maglev_ros.irregularity.twin_input.twin_spacing_m`).
     Further keywords (``band_factor``, ``trim_wavelengths``, ``edge_s``, ...) go to
     :func:`~maglev_ros.irregularity.twin_input.profile_for_twin` and its profiler."""
+    say = log or (lambda s: None)
+    got = _reconstruct(rec, spec, say, highpass_hz=highpass_hz, spacing_m=spacing_m,
+                       max_iterations=max_iterations, **profile_kw)
+    if got is None:
+        return rec
+    ti, info = got
+    x, r = ti.as_twin_input()
+    if denoise:
+        x, r, g = ti.denoised_twin_input()
+        _note_gain(rec, g, info, say)
+    return _attach(rec, ti, (x, r), info, margin_m)
+
+
+def with_twin_irregularities(recs: Sequence[Recording], spec, *, share: bool = True,
+                             highpass_hz: float | None = 0.8, margin_m: float = 1.0, max_iterations: int = 3,
+                             log=None, **profile_kw) -> list[Recording]:
+    """:func:`with_twin_irregularity` for several passes over one line, on one grid (the finest any
+    pass resolves), their short waves shared when they measured one rail at one position (``share``;
+    :func:`~maglev_ros.irregularity.twin_input.shared_twin_inputs`: twice the magnets, half the noise;
+    what was done is stated in each pass's ``irregularity_info["shared"]``)."""
+    from maglev_ros.irregularity.twin_input import shared_twin_inputs, twin_spacing_m
+    say = log or (lambda s: None)
+    spacing = profile_kw.pop("spacing_m", None)
+    if spacing is None:
+        steps = []
+        for r in recs:
+            d = _vehicle_data(r)
+            if d is not None and d[1]:
+                steps.append(twin_spacing_m(d[0], d[2], len(d[1])))
+        spacing = min(steps) if steps else None
+    got = [_reconstruct(r, spec, say, highpass_hz=highpass_hz, spacing_m=spacing, max_iterations=max_iterations,
+                        **profile_kw) for r in recs]
+    done = [(i, g) for i, g in enumerate(got) if g is not None]
+    out = list(recs)
+    if share and len(done) >= 2:
+        inputs, shared = shared_twin_inputs([ti for _, (ti, _) in done])
+    else:
+        inputs, shared = None, None
+    for n, (i, (ti, info)) in enumerate(done):
+        if shared is not None and shared.used:
+            xr, g = inputs[n], shared.gain
+        else:
+            *xr, g = ti.denoised_twin_input()
+        _note_gain(recs[i], g, info, say)
+        if shared is not None:
+            info["shared"] = shared.to_dict()
+            if not shared.used:
+                say(f"{recs[i].source}: short waves not shared with the other passes ({shared.reason})")
+        out[i] = _attach(recs[i], ti, tuple(xr), info, margin_m)
+    return out
+
+
+def _vehicle_data(rec: Recording):
+    """(accel, channel pairs, position) of a pass, ChannelData-like; None without them."""
     from maglev_ros.contract import metadata_from_dict
     from maglev_ros.irregularity.profile import magnet_channel_pairs
-    from maglev_ros.irregularity.twin_input import profile_for_twin
-    say = log or (lambda s: None)
     if rec.kind != "pass" or rec.position_time_s is None:
-        return rec
+        return None
     acc, gap = _cd(rec, "vehicle_accel"), _cd(rec, "gap")
     if acc is None or gap is None:
-        say(f"{rec.source}: no magnet accelerations and gaps: the twin runs on a perfect guideway")
-        return rec
+        return None
     md = metadata_from_dict(dict(rec.metadata), rec.source)
     pairs = magnet_channel_pairs(md, acc.channels, gap.channels)
-    if not pairs:
-        say(f"{rec.source}: no magnet with both accel and gap channels: the twin runs on a perfect guideway")
-        return rec
     pos = SimpleNamespace(time_s=rec.position_time_s, data=np.column_stack([rec.position_m, rec.speed_mps]),
                           channels=("position_m", "speed_mps"), sample_rate_hz=None)
+    return acc, pairs, pos
+
+
+def _reconstruct(rec: Recording, spec, say, *, highpass_hz, spacing_m, max_iterations, **profile_kw):
+    """(TwinIrregularity, info) of one pass, or None (reason logged)."""
+    from maglev_ros.contract import metadata_from_dict
+    from maglev_ros.irregularity.twin_input import profile_for_twin
+    data = _vehicle_data(rec)
+    if data is None:
+        if rec.kind == "pass" and rec.position_time_s is not None:
+            say(f"{rec.source}: no magnet accelerations and gaps: the twin runs on a perfect guideway")
+        return None
+    acc, pairs, pos = data
+    if not pairs:
+        say(f"{rec.source}: no magnet with both accel and gap channels: the twin runs on a perfect guideway")
+        return None
+    gap = _cd(rec, "gap")
+    md = metadata_from_dict(dict(rec.metadata), rec.source)
     tau = sensor_delay_s(md)
     try:
         ti = profile_for_twin(acc, gap, pos, md, spec.effective_config(), spec.effective_spans(),
@@ -85,18 +154,23 @@ def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float = 0.8, sp
                               **profile_kw)
     except (UserError, ValueError, np.linalg.LinAlgError) as exc:
         say(f"{rec.source}: irregularity reconstruction failed ({exc}): the twin runs on a perfect guideway")
-        return rec
+        return None
     info = ti.to_dict()
     info["channel_pairs"] = {int(k): list(v) for k, v in pairs.items()}
-    x, r = ti.as_twin_input()
-    if denoise:
-        x, r, g = ti.denoised_twin_input()
-        if g is None:
-            say(f"{rec.source}: one magnet (or too short a common stretch): the irregularity is not denoised")
-        else:
-            info["denoise"] = g.to_dict()
-    return replace(rec, irregularity=(x, r), irregularity_valid_m=ti.valid_range_m,
-                   irregularity_margin_m=float(ti.taper_m + margin_m), sensor_delay_s=tau,
+    return ti, info
+
+
+def _note_gain(rec: Recording, g, info: dict, say) -> None:
+    if g is None:
+        say(f"{rec.source}: one magnet (or too short a common stretch): no noise spectrum measured, the rail "
+            "keeps the band of the 2 cm grid")
+    else:
+        info["denoise"] = g.to_dict()
+
+
+def _attach(rec: Recording, ti, xr, info: dict, margin_m: float) -> Recording:
+    return replace(rec, irregularity=xr, irregularity_valid_m=ti.valid_range_m,
+                   irregularity_margin_m=float(ti.taper_m + margin_m), sensor_delay_s=ti.sensor_delay_s,
                    irregularity_info=info)
 
 

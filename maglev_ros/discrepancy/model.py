@@ -37,6 +37,7 @@ from maglev_ros.twin.design import SpanSpec, TwinConfig, line_spans, twin_config
 from maglev_ros.twin.guideway import assemble_span
 from maglev_ros.twin.levitation import VehicleSystem, LevitationModel, closed_loop
 from maglev_ros.twin.spring_force import advance_with_spring_force
+from maglev_ros.twin.trajectory import MeasuredTrajectory, drive
 from maglev_ros.twin.vehicle import VehicleModel, static_equilibrium, vehicle_from_design
 
 from .attachment import attached_modal
@@ -306,22 +307,20 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     fs = fs_out_hz or max(c.sample_rate_hz for c in rec.channels.values())
     sensors = {n: c.position_m for n, c in rec.channels.items()
                if c.group in ("guideway_accel", "guideway_disp") and c.position_m is not None}
-    tp, xp, vp = rec.position_time_s, rec.position_m, rec.speed_mps
+    traj = MeasuredTrajectory.from_samples(rec.position_time_s, rec.position_m, rec.speed_mps)
     tau = float(rec.sensor_delay_s)
-    t0 = max(rec.t0_s - tau, float(tp[0])) - 1.0 / fs
-    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(np.interp(t0, tp, xp)),
-                       start_speed_mps=float(np.interp(t0, tp, vp)), t0_s=t0,
-                       irregularity=rec.irregularity)
-    parts = []
-    t = t0
+    t0 = max(rec.t0_s - tau, float(traj.time_s[0])) - 1.0 / fs
+    st = build_stepper(phys, sensors, fs_out_hz=fs, start_position_m=float(traj.position_at(t0)),
+                       start_speed_mps=float(traj.speed_at(t0)), t0_s=t0, irregularity=rec.irregularity)
     t_end = rec.t1_s - tau + 1.0 / fs
-    rows = air_spring_rows(st.vehicle.model) if spec.air_spring_force else None
-    force = air_spring_force_law(spec.air_spring_force) if spec.air_spring_force else None
-    while t < t_end - 1e-12:
-        tn = min(t_end, t + 0.25)
-        v = float(np.interp(tn, tp, vp))
-        parts.append(st.advance(tn, v) if force is None else advance_with_spring_force(st, tn, v, rows, force)[0])
-        t = tn
+    step = None
+    if spec.air_spring_force:
+        rows = air_spring_rows(st.vehicle.model)
+        force = air_spring_force_law(spec.air_spring_force)
+
+        def step(s, t, v):
+            return advance_with_spring_force(s, t, v, rows, force)[0]
+    parts = drive(st, traj, t_end, 0.25, step)
     res = PassResult.concat(parts)
     if tau:
         res = replace(res, time_s=res.time_s + tau)

@@ -86,3 +86,128 @@ def apply_gain(profile_m: np.ndarray, spacing_m: float, g: CoherentGain) -> np.n
     k = np.fft.rfftfreq(nfft, spacing_m)
     H = np.interp(k, g.wavenumber_cpm, g.gain, right=float(g.gain[-1]))
     return np.fft.irfft(np.fft.rfft(r, nfft) * H, nfft)[:r.size]
+
+
+# ----------------------------------------------------------------------------------------------
+# Noise-aware gain: the rail spectrum and each magnet's own error spectrum measured on the pass
+@dataclass(frozen=True, eq=False)
+class RailGain:
+    """Spectra measured on one pass's magnet profiles and the Wiener gain they give.
+
+    ``noise_psd`` N(k) is one magnet's own error (half the spectrum of two magnets' difference where
+    both measured the same rail); ``rail_psd`` R(k) the magnets' mean auto-spectrum minus N, set to 0
+    where it does not clear ``z`` standard errors of the two estimates. Both are smoothed over a
+    band of constant relative width (``rel_width`` of k): the error spectrum is smooth (white gap
+    noise, double-integrated accelerometer noise), so many Welch bins go into each value and the
+    gain does not pass noise where the rail has none."""
+    wavenumber_cpm: np.ndarray
+    rail_psd: np.ndarray
+    noise_psd: np.ndarray
+    n_magnets: int
+    n_points: int                  # grid points where two or more magnets measured (the noise's data)
+    segment_m: float
+
+    def gain(self, n_eff: float = 1.0) -> np.ndarray:
+        """Wiener gain R / (R + N / n_eff) for a mean over ``n_eff`` magnets' independent errors."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = self.rail_psd / (self.rail_psd + self.noise_psd / max(float(n_eff), 1.0))
+        return np.where(np.isfinite(g), g, 0.0)
+
+    def cut_wavelength_m(self, n_eff: float = 1.0, level: float = 0.5) -> float | None:
+        """Longest wavelength where the gain first falls below ``level`` (None: never)."""
+        k, g = self.wavenumber_cpm, self.gain(n_eff)
+        low = np.flatnonzero((g < level) & (k > 0))
+        return float(1.0 / k[low[0]]) if low.size else None
+
+    def to_dict(self) -> dict:
+        return {"method": "Wiener gain from the rail spectrum and each magnet's own error spectrum "
+                          "(half the spectrum of two magnets' difference), smoothed in relative bands",
+                "n_magnets": self.n_magnets, "n_points_two_or_more": self.n_points,
+                "segment_m": self.segment_m,
+                "half_gain_wavelength_m": {"one_magnet": self.cut_wavelength_m(1.0),
+                                           "all_magnets": self.cut_wavelength_m(self.n_magnets)}}
+
+
+def _welch_runs(rows: list, fs: float, nperseg: int):
+    """Welch PSD averaged over every finite run (of each row) holding a segment; (k, psd, n_segments)."""
+    acc, nseg, k = None, 0, None
+    for y in rows:
+        for i0, i1 in _runs(np.isfinite(y)):
+            if i1 - i0 < nperseg:
+                continue
+            seg = y[i0:i1]
+            k, p = signal.welch(seg - seg.mean(), fs=fs, nperseg=nperseg)
+            n = 1 + (seg.size - nperseg) // (nperseg // 2)
+            acc = p * n if acc is None else acc + p * n
+            nseg += n
+    return (None, None, 0) if acc is None else (k, acc / nseg, nseg)
+
+
+def _smooth_relative(k: np.ndarray, p: np.ndarray, rel_width: float):
+    """Mean of p over |k' - k| <= rel_width * k / 2 (at least the bin itself); and the bin counts."""
+    out, cnt = np.empty_like(p), np.empty(p.size)
+    for i, kk in enumerate(k):
+        m = np.abs(k - kk) <= 0.5 * rel_width * kk
+        m[i] = True
+        out[i], cnt[i] = p[m].mean(), m.sum()
+    return out, cnt
+
+
+def rail_gain(magnet_profiles_m: np.ndarray, spacing_m: float, nperseg: int = 256,
+              rel_width: float = 0.25, z: float = 2.0, min_segments: int = 4) -> RailGain | None:
+    """Rail and per-magnet error spectra of the profiles (n_magnets, n_points; NaN where a magnet has
+    none) and their Wiener gain (:class:`RailGain`). None with one magnet or when the stretches that
+    two magnets share hold fewer than ``min_segments`` Welch segments."""
+    P = np.asarray(magnet_profiles_m, float)
+    if P.ndim != 2 or P.shape[0] < 2:
+        return None
+    fs = 1.0 / spacing_m
+    n_both = int(np.sum(np.sum(np.isfinite(P), axis=0) >= 2))
+    diffs = [P[i] - P[j] for i in range(len(P)) for j in range(i + 1, len(P))]
+    best = max((i1 - i0 for d in diffs for i0, i1 in _runs(np.isfinite(d))), default=0)
+    nps = int(min(nperseg, 2 ** int(np.floor(np.log2(max(best, 2) / 2)))))
+    if nps < 16:
+        return None
+    k, D, nd = _welch_runs(diffs, fs, nps)
+    _, A, na = _welch_runs(list(P), fs, nps)
+    if k is None or nd < min_segments or A is None:
+        return None
+    N, cnt = _smooth_relative(k, D / 2.0, rel_width)
+    A, _ = _smooth_relative(k, A, rel_width)
+    # relative standard error of a Welch average: 1 / sqrt(segments x bins averaged) (Hann, 50 %)
+    se = np.sqrt((A ** 2) / (na * cnt) + (N ** 2) / (nd * cnt))
+    R = A - N
+    R = np.where(R > z * se, R, 0.0)
+    R[0] = max(R[0], A[0])
+    return RailGain(k, R, N, int(P.shape[0]), n_both, nps * spacing_m)
+
+
+def magnets_averaged(magnet_profiles_m: np.ndarray, ramp_bins: int) -> np.ndarray:
+    """Effective number of magnets with independent errors in the weighted mean at each point,
+    (sum w)^2 / sum w^2 with the coverage weights of the profiler (:func:`.profile._coverage_weights`)."""
+    from .profile import _coverage_weights
+    W = _coverage_weights(np.isfinite(magnet_profiles_m), ramp_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = np.sum(W, axis=0) ** 2 / np.sum(W ** 2, axis=0)
+    return np.where(np.isfinite(n), n, 1.0)
+
+
+def apply_rail_gain(profile_m: np.ndarray, spacing_m: float, g: RailGain, n_eff) -> np.ndarray:
+    """The profile filtered (zero phase) by the gain for the number of magnets averaged at each point
+    (``n_eff``: scalar or per point; the filtered profiles for whole magnet counts are blended)."""
+    r = np.asarray(profile_m, float)
+    n_eff = np.broadcast_to(np.clip(np.asarray(n_eff, float), 1.0, g.n_magnets), r.shape)
+    nfft = 1 << int(np.ceil(np.log2(2 * r.size)))
+    k = np.fft.rfftfreq(nfft, spacing_m)
+    R = np.fft.rfft(r, nfft)
+    levels = np.arange(1, g.n_magnets + 1)
+    fil = {}
+    for m in levels:
+        if np.any(np.abs(n_eff - m) < 1):
+            H = np.interp(k, g.wavenumber_cpm, g.gain(m), right=0.0)
+            fil[m] = np.fft.irfft(R * H, nfft)[:r.size]
+    out = np.zeros_like(r)
+    for m in fil:
+        w = np.clip(1.0 - np.abs(n_eff - m), 0.0, 1.0)
+        out += w * fil[m]
+    return out

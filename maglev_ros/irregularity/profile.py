@@ -407,8 +407,12 @@ class InertialProfiler:
 
     def slow_speed_mps(self, band_speed_mps: float) -> float:
         """Slowest speed whose samples are kept: there the time high-pass still passes 99 % of the
-        longest stated wave (0.89 x the band speed at band_factor 2, order 4)."""
-        return band_speed_mps * min(1.0, 99.0 ** (1.0 / (2 * self.filter_order)) / self.band_factor)
+        longest stated wave (0.89 x the band speed at band_factor 2, order 4). Below band factor 2
+        the longest wave is already attenuated at the band speed itself and the rule would keep
+        nothing slower than it (a pass whose speed wanders by 0.5 % lost 5 % of its distance in
+        holes and fell apart into pieces too short for the band-pass): slow is then judged as at
+        band factor 2."""
+        return band_speed_mps * min(1.0, 99.0 ** (1.0 / (2 * self.filter_order)) / max(self.band_factor, 2.0))
 
     def longest_wavelength_m(self, band_speed_mps: float) -> float:
         """Longest trusted wave: the time high-pass passes > 0.996 of it at ``band_factor`` 2."""

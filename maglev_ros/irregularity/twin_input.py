@@ -16,8 +16,13 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
 3. **Band for the twin.** The twin's magnets are point forces: the magnet accelerations come
    from the SHORT waves (at 25 km/h a 0.5 m wave is 14 Hz). So ``magnet_length_m`` is 0 here and
    the shortest wavelength is set by sampling and grid only:
-   ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)`` (default spacing 0.02 m; override
-   with ``min_wavelength_m``). Because the reconstruction uses the same point-sensor convention
+   ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)``. The grid follows the data
+   (``spacing_m`` None): one sample step at the top speed, ``v_max / fs``, at most
+   ``DEFAULT_SPACING_M`` (2 cm), when two or more magnets measure (their difference measures the
+   noise that the twin input's gain then removes, :meth:`TwinIrregularity.denoised_twin_input`);
+   2 cm with one. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
+   a foreign simulator's rail still had its stator-pack waves; the twin's magnet misfit there grew
+   from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``. Because the reconstruction uses the same point-sensor convention
    as the twin, the result is the *effective* irregularity the twin needs (as is the geometry
    product of :class:`InertialProfiler`, also point sensors by default, on its coarser grid).
    The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
@@ -73,7 +78,9 @@ from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
-           "twin_deflection"]
+           "twin_deflection", "twin_spacing_m", "DEFAULT_SPACING_M", "SharedRail", "shared_twin_inputs"]
+
+DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,16 +110,30 @@ class TwinIrregularity:
         return self.position_m, self.irregularity_m
 
     def denoised_twin_input(self):
-        """(x, r, gain): the twin input keeping only what the magnets agree on (coherent Wiener gain,
-        :mod:`maglev_ros.irregularity.denoise`); ``gain`` is None and r unchanged with one magnet or
-        too short a common stretch. The diagnosis and the model updating (offline and online) drive
-        the twin with this: the raw mean carries short waves the magnets do not agree on (gap noise),
-        which the twin turned into magnet accelerations 10-1000x the measured ones at 60-110 Hz."""
-        from .denoise import apply_gain, coherent_gain
-        g = coherent_gain(self.result.magnet_profiles_m, self.spacing_m)
+        """(x, r, gain): the twin input with the Wiener gain of the spectra measured on this pass
+        (:func:`maglev_ros.irregularity.denoise.rail_gain`: the rail's, and each magnet's own error
+        from the magnets' difference), for the number of magnets averaged at each point (one where
+        a single magnet measured). ``gain`` is None with one magnet or too short a common stretch;
+        r is then band-limited at the shortest wave of the default grid (4 x ``DEFAULT_SPACING_M``).
+        The diagnosis and the model updating (offline and online) drive the twin with this: the raw
+        mean carries short waves the magnets do not agree on (gap noise), which the twin turned into
+        magnet accelerations 10-1000x the measured ones at 60-110 Hz."""
+        from .denoise import apply_rail_gain, magnets_averaged, rail_gain
+        res = self.result
+        g = rail_gain(res.magnet_profiles_m, self.spacing_m)
         if g is None:
-            return self.position_m, self.irregularity_m, None
-        return self.position_m, apply_gain(self.irregularity_m, self.spacing_m, g), g
+            return self.position_m, self._lowpassed(4 * DEFAULT_SPACING_M), None
+        ramp = max(1, int(round(0.25 * res.max_wavelength_m / self.spacing_m)))   # the profiler's blend
+        n_eff = np.ones(self.position_m.size)
+        i0 = int(round((res.position_m[0] - self.position_m[0]) / self.spacing_m))
+        n_eff[i0:i0 + res.position_m.size] = magnets_averaged(res.magnet_profiles_m, ramp)
+        return self.position_m, apply_rail_gain(self.irregularity_m, self.spacing_m, g, n_eff), g
+
+    def _lowpassed(self, min_wavelength_m: float) -> np.ndarray:
+        if min_wavelength_m <= self.min_wavelength_m * (1 + 1e-9):
+            return self.irregularity_m
+        sos = signal.butter(self.filter_order, 1.0 / min_wavelength_m, fs=1.0 / self.spacing_m, output="sos")
+        return signal.sosfiltfilt(sos, self.irregularity_m)
 
     @property
     def valid_range_m(self) -> tuple[float, float]:
@@ -189,14 +210,6 @@ def _position_arrays(position):
     return t[ok], p[ok], v[ok]
 
 
-def _position_at(t, tp, pos, spd) -> np.ndarray:
-    """Measured position at times t: linear inside the record, extrapolated with the end speeds."""
-    t = np.asarray(t, float)
-    x = np.interp(t, tp, pos)
-    return x + np.where(t < tp[0], (t - tp[0]) * spd[0], 0.0) \
-        + np.where(t > tp[-1], (t - tp[-1]) * spd[-1], 0.0)
-
-
 def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
                            sensor_delay_s: float = 0.0, method: str = "newmark",
                            dt_max_s: float | None = None, sensors: Any = None,
@@ -212,28 +225,22 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
     position - measured position| and the ``TwinStepper`` (vehicle model, magnet offsets).
     """
     from maglev_ros.twin.coupling import PassResult, TwinStepper
+    from maglev_ros.twin.trajectory import MeasuredTrajectory, drive
     t = np.asarray(time_s, float)
     if t.size < 2:
         raise UserError("vehicle accel: fewer than 2 samples to predict")
     fs = 1.0 / float(np.median(np.diff(t)))
-    tp, pos, spd = _position_arrays(position)
+    traj = MeasuredTrajectory.from_samples(*_position_arrays(position))
     tau = float(sensor_delay_s)
     t_start = t[0] - tau - 1.0 / fs
     t_end = t[-1] - tau
     st = TwinStepper(config, line, sensors=sensors, irregularity=irregularity, fs_out_hz=fs,
-                     start_position_m=float(_position_at(t_start, tp, pos, spd)),
-                     start_speed_mps=float(np.interp(t_start, tp, spd)), t0_s=t_start,
+                     start_position_m=float(traj.position_at(t_start)),
+                     start_speed_mps=float(traj.speed_at(t_start)), t0_s=t_start,
                      method=method, dt_max_s=dt_max_s, init="rest")
     st._init_static()
-    parts = []
-    tc = t_start
-    while tc < t_end - 0.5 / fs:
-        tn = min(t_end + 0.5 / fs, tc + block_s)
-        parts.append(st.advance(tn, float(np.interp(tn, tp, spd))))
-        tc = tn
-    res = PassResult.concat(parts)
-    drift = float(np.max(np.abs(res.position_m - _position_at(res.time_s, tp, pos, spd)))) \
-        if res.n_samples else 0.0
+    res = PassResult.concat(drive(st, traj, t_end + 0.5 / fs, block_s))
+    drift = float(np.max(np.abs(res.position_m - traj.position_at(res.time_s)))) if res.n_samples else 0.0
     from dataclasses import replace
     res = replace(res, time_s=res.time_s + tau)
     return res, drift, st
@@ -266,7 +273,12 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
     valid = np.zeros(n, bool)
     valid[npad:npad + ok.size] = ok
     r[npad:npad + ok.size] = np.where(ok, res.irregularity_m, 0.0)
-    nt = int(round(taper_m / dx))
+    return x, r * _taper_weights(valid, int(round(taper_m / dx))), valid
+
+
+def _taper_weights(valid: np.ndarray, nt: int) -> np.ndarray:
+    """1 inside each valid stretch, a half-cosine ramp over its first and last ``nt`` points, 0 outside."""
+    w = valid.astype(float)
     if nt > 1:
         m = np.concatenate([[False], valid, [False]])
         d = np.diff(m.astype(np.int8))
@@ -274,13 +286,25 @@ def _twin_profile(res: IrregularityResult, taper_m: float, pad_m: float):
             k = min(nt, (i1 - i0) // 2)
             if k > 1:
                 ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
-                r[i0:i0 + k] *= ramp
-                r[i1 - k:i1] *= ramp[::-1]
-    return x, r, valid
+                w[i0:i0 + k] *= ramp
+                w[i1 - k:i1] *= ramp[::-1]
+    return w
+
+
+def twin_spacing_m(accel, position, n_magnets: int) -> float:
+    """Grid of the twin input [m]: one sample step at the top speed when two or more magnets measure
+    (the finest the data resolve; their noise is then measured and removed), never coarser than
+    ``DEFAULT_SPACING_M``; that with one magnet."""
+    if n_magnets < 2:
+        return DEFAULT_SPACING_M
+    _, _, spd = _position_arrays(position)
+    fs = getattr(accel, "sample_rate_hz", None) or 1.0 / float(np.median(np.diff(np.asarray(accel.time_s, float))))
+    v_top = float(np.max(np.abs(spd)))
+    return DEFAULT_SPACING_M if not v_top > 0 else min(DEFAULT_SPACING_M, v_top / float(fs))
 
 
 def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=None, *,
-                     highpass_hz: float | None = 0.8, spacing_m: float = 0.02,
+                     highpass_hz: float | None = 0.8, spacing_m: float | None = None,
                      min_wavelength_m: float | None = None, max_wavelength_m: float | None = None,
                      band_speed_mps: float | None = None, magnets: Sequence[int] | None = None,
                      channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
@@ -296,8 +320,9 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     (``TwinConfig`` and the metadata ``line`` block / spans) whose deflection is removed.
     ``max_iterations``: twin runs at most (0 returns the loaded profile, tagged as such in the
     warnings). ``highpass_hz`` None: the corner follows the pass as the irregularity verb chooses it
-    (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. Extra keyword
-    arguments go to :class:`InertialProfiler`.
+    (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. ``spacing_m``
+    None: the grid follows the data (:func:`twin_spacing_m`). Extra keyword arguments go to
+    :class:`InertialProfiler`.
     """
     offs, g0, pairs = _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs)
     if highpass_hz is not None and not highpass_hz > 0:
@@ -305,6 +330,10 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     if not (max_iterations >= 0):
         raise UserError(f"max_iterations: expected >= 0, got {max_iterations}")
     tau = float(sensor_delay_s)
+    if spacing_m is None:
+        n_mag = len([m for m in (pairs or {}) if magnets is None or m in magnets]) if pairs else \
+            min(len(accel.channels), len(gap.channels), len(offs))
+        spacing_m = twin_spacing_m(accel, position, n_mag)
     pos_sh = _cd(np.asarray(position.time_s, float) + tau, position.data, position.channels,
                  getattr(position, "sample_rate_hz", None))
     prof = InertialProfiler(highpass_hz=highpass_hz, spacing_m=spacing_m, magnets=magnets,
@@ -440,3 +469,129 @@ def accel_nrmse(accel, prediction, twin_irregularity: TwinIrregularity, config, 
     return {"nrmse": tot, "per_channel": per, "band_hz": [float(band_hz[0]), float(band_hz[1])],
             "filter": "butterworth order 4 band-pass, zero-phase (sosfiltfilt), on both signals",
             "window_s": float(win.sum() / fs), "n_samples": int(win.sum())}
+
+
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SharedRail:
+    """How the passes over one line shared their short waves (:func:`shared_twin_inputs`)."""
+    used: bool
+    reason: str
+    n_passes: int
+    n_profiles: int                      # magnet profiles of every pass that were averaged
+    split_wavelength_m: float | None     # shorter waves from every pass, longer from each pass itself
+    noise_ratio: float | None            # error spectrum between / within passes, median where shared
+    noise_ratio_limit: float | None
+    gain: Any = None                     # the RailGain of all profiles
+
+    def to_dict(self) -> dict:
+        return {"used": self.used, "reason": self.reason, "n_passes": self.n_passes,
+                "n_profiles": self.n_profiles, "split_wavelength_m": self.split_wavelength_m,
+                "noise_ratio_between_passes": self.noise_ratio, "noise_ratio_limit": self.noise_ratio_limit,
+                "gain": None if self.gain is None else self.gain.to_dict()}
+
+
+def _complement_lowpass(r: np.ndarray, spacing_m: float, wavelength_m: float) -> np.ndarray:
+    """Zero-phase low-pass with gain 1 / (1 + (k wavelength)^8) (r minus it: the matching high-pass)."""
+    n = 1 << int(np.ceil(np.log2(2 * r.size)))
+    k = np.fft.rfftfreq(n, spacing_m)
+    return np.fft.irfft(np.fft.rfft(r, n) / (1.0 + (k * wavelength_m) ** 8), n)[:r.size]
+
+
+def shared_twin_inputs(tis: Sequence[TwinIrregularity]) -> tuple[list[tuple[np.ndarray, np.ndarray]], SharedRail]:
+    """The twin inputs of several passes over ONE line, each with its short waves measured by every
+    pass's magnets: the same rail seen by twice the magnets carries half the noise.
+
+    Each pass keeps its own denoised input (:meth:`TwinIrregularity.denoised_twin_input`) for waves
+    longer than ``split``, the longest wave every pass keeps at full gain (the passes' bands differ
+    at their long ends: their corners and speeds); shorter waves come from the mean of every pass's magnet profiles on their common grid, with the
+    Wiener gain of all of them, inside the pass's own valid stretch (its tapers, valid range and long
+    waves unchanged). A wave is shared only where the passes measured the same rail at the same
+    positions: where the error spectrum between two passes' magnets exceeds the one within a pass by
+    less than the error the wider mean removes (a shift in position, or a rail that changed, shows as
+    a larger difference between the passes where the rail is strong). Elsewhere each pass keeps its own."""
+    from .denoise import _smooth_relative, _welch_runs, apply_rail_gain, magnets_averaged, rail_gain
+    own = [ti.denoised_twin_input()[:2] for ti in tis]
+
+    def keep(reason, **kw):
+        return own, SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit"))
+    if len(tis) < 2:
+        return keep("one pass")
+    dx = tis[0].spacing_m
+    if any(abs(ti.spacing_m - dx) > 1e-9 * dx for ti in tis):
+        return keep("the passes' grids differ")
+    n_own = [ti.result.magnet_profiles_m.shape[0] for ti in tis]
+    if min(n_own) < 2:
+        return keep("a pass with one magnet: its own error spectrum is not measured")
+    # the split: the longest wave every pass keeps at full gain, v / (2 f_c), half its stated longest
+    # at band factor 1 (the passes' bands differ at their long ends only: their corners and speeds)
+    split = min(ti.band_speed_mps / (2.0 * ti.highpass_hz) for ti in tis)
+    j = [int(round(ti.result.position_m[0] / dx)) for ti in tis]
+    j0 = min(j)
+    n = max(jj + ti.result.position_m.size for jj, ti in zip(j, tis)) - j0
+    rows, owner = [], []
+    for p, (jj, ti) in enumerate(zip(j, tis)):
+        for prof in ti.result.magnet_profiles_m:
+            row = np.full(n, np.nan)
+            row[jj - j0:jj - j0 + prof.size] = prof
+            rows.append(row)
+            owner.append(p)
+    rows = np.array(rows)
+    nps = 256
+    within = [rows[a] - rows[b] for a in range(len(rows)) for b in range(a + 1, len(rows)) if owner[a] == owner[b]]
+    between = [rows[a] - rows[b] for a in range(len(rows)) for b in range(a + 1, len(rows)) if owner[a] != owner[b]]
+    k, w_psd, nw = _welch_runs(within, 1.0 / dx, nps)
+    _, b_psd, nb = _welch_runs(between, 1.0 / dx, nps)
+    # a wave is shared where the passes' disagreement Delta = 2 (b - w) (b, w: the error spectra between
+    # and within passes) adds less error to the shared mean, f^2 Delta with f the other passes' share
+    # of it, than the wider mean removes, w (1 / n_own - 1 / n_all): b / w below the limit
+    n_min, n_all = min(n_own), len(rows)
+    f = 1.0 - n_min / n_all
+    limit = 1.0 + (1.0 / n_min - 1.0 / n_all) / (2.0 * f * f)
+    if k is None or b_psd is None:
+        return keep("the passes measured no common stretch long enough to compare", split=split, limit=limit)
+    w_s, cnt = _smooth_relative(k, w_psd, 0.25)
+    b_s, _ = _smooth_relative(k, b_psd, 0.25)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio_k = b_s / w_s
+    # the ratio must clear the limit by two of its standard errors (Welch averages of nb, nw segments)
+    se_k = ratio_k * np.sqrt(1.0 / (nb * cnt) + 1.0 / (nw * cnt))
+    short = (k >= 1.0 / split) & np.isfinite(ratio_k)
+    shared_k = short & (ratio_k + 2.0 * se_k <= limit)
+    if not shared_k.any():
+        return keep(f"the passes differ by more than their noise at every wave shorter than {split:.3g} m "
+                    f"(between / within a pass {np.nanmin(ratio_k[short]) if short.any() else np.nan:.2f} "
+                    f"or more, limit {limit:.2f}): not one rail at one position", split=split, limit=limit)
+    ratio = float(np.median(ratio_k[shared_k]))
+    g = rail_gain(rows, dx)
+    if g is None:
+        return keep("no error spectrum measured", split=split, ratio=ratio, limit=limit)
+    from .profile import _coverage_weights
+    ramp = max(1, int(round(0.25 * min(ti.result.max_wavelength_m for ti in tis) / dx)))
+    W = _coverage_weights(np.isfinite(rows), ramp)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_all = np.sum(W * np.nan_to_num(rows), axis=0) / np.sum(W, axis=0)
+    n_all = magnets_averaged(rows, ramp)
+    out = []
+    for jj, ti, (x, r_own) in zip(j, tis, own):
+        res = ti.result
+        sl = slice(jj - j0, jj - j0 + res.position_m.size)
+        nt = int(round(ti.taper_m / dx))
+        # every pass's mean where this pass measured (its own ramps at the ends), with the gain of all
+        # the profiles; only its waves shorter than the split replace the pass's own: those of the
+        # difference, which is small and tapered like the pass's input (no step for the filter to ring on)
+        m = np.where(res.valid & np.isfinite(mean_all[sl]), mean_all[sl], res.irregularity_m)
+        i0 = int(round((res.position_m[0] - x[0]) / dx))
+        r_all = np.zeros(x.size)
+        r_all[i0:i0 + m.size] = np.where(res.valid, m, 0.0)
+        n_eff = np.ones(x.size)
+        n_eff[i0:i0 + m.size] = np.where(res.valid, n_all[sl], 1.0)
+        diff = apply_rail_gain(r_all * _taper_weights(ti.valid, nt), dx, g, n_eff) - r_own
+        nfft = 1 << int(np.ceil(np.log2(2 * diff.size)))
+        kf = np.fft.rfftfreq(nfft, dx)
+        H = (1.0 - 1.0 / (1.0 + (kf * split) ** 8)) * np.interp(kf, k, shared_k.astype(float))
+        out.append((x, r_own + np.fft.irfft(np.fft.rfft(diff, nfft) * H, nfft)[:diff.size]))
+    lam = 1.0 / k[shared_k]
+    return out, SharedRail(True, f"one rail: the passes differ by their noise only at {lam.min():.3g}-{lam.max():.3g} m "
+                                 f"({shared_k.sum()} of {short.sum()} wavenumbers shorter than the split)",
+                           len(tis), len(rows), split, ratio, limit, g)

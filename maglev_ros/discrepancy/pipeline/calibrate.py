@@ -4,7 +4,8 @@ Order: the passes sorted (the fastest trains, the others are held out); the gird
 on the ambient recording's modes (:mod:`..damping`) set before anything is fitted (a fitted E or kb
 cannot make up for it); each pass's rail reconstructed with the nominal twin, E, kb, kp, kv
 calibrated on the training pass, the rail rebuilt ONCE with the calibrated twin and the calibration
-refined on it (kept for every hypothesis). The result states the calibrated fit per channel.
+refined on it (kept for every hypothesis). The passes' rails share their short waves when they
+measured one rail (``DiagnoseConfig.irregularity_shared``, :func:`..irregularity.with_twin_irregularities`). The result states the calibrated fit per channel.
 A guard keeps the nominal twin (with the measured damping) when the calibrated one fits the
 held-out passes worse: a local fault in the training pass can drag the global parameters away.
 """
@@ -20,7 +21,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..irregularity import with_twin_irregularity
+from ..irregularity import with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
 
@@ -53,10 +54,11 @@ class PassPreparer:
         say = self.notes.append if log is True else (log or None)
         ps = list(self.raw_passes)
         if cfg.irregularity:
-            ps = [with_twin_irregularity(p, spec, highpass_hz=cfg.irregularity_highpass_hz,
-                                         band_factor=cfg.irregularity_band_factor,
-                                         trim_wavelengths=cfg.irregularity_trim_wavelengths,
-                                         edge_s=cfg.irregularity_edge_s, log=say) for p in self.raw_passes]
+            ps = with_twin_irregularities(self.raw_passes, spec, share=cfg.irregularity_shared,
+                                          highpass_hz=cfg.irregularity_highpass_hz,
+                                          band_factor=cfg.irregularity_band_factor,
+                                          trim_wavelengths=cfg.irregularity_trim_wavelengths,
+                                          edge_s=cfg.irregularity_edge_s, log=say)
         full = [prepare(r, spec if floor_spec is None else floor_spec) for r in ps]
         # held out: every other pass. (Alternate 1.5 s windows of the training pass as extra
         # held-out data were tried: on a clean 2-span case a guideway sensor's model error then

@@ -268,7 +268,10 @@ def _irregularity_summary(rec: Recording) -> dict:
             "valid_m": list(rec.irregularity_valid_m), "sensor_delay_s": rec.sensor_delay_s,
             "rms_m": info.get("rms_m"), "iterations": info.get("iterations"),
             "converged": info.get("converged"), "band": {k: info.get("band", {}).get(k) for k in
-                                                         ("min_wavelength_m", "max_wavelength_m", "highpass_hz")}}
+                                                         ("min_wavelength_m", "max_wavelength_m", "highpass_hz")},
+            "spacing_m": info.get("spacing_m"), "denoise": info.get("denoise"),
+            "shared": {k: (info.get("shared") or {}).get(k) for k in ("used", "reason", "split_wavelength_m")}
+            if info.get("shared") else None}
 
 
 def _named(text: str, recs: Sequence[Recording | None]) -> str:

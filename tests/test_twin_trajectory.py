@@ -62,3 +62,29 @@ def test_the_stepper_lands_on_the_trajectory_where_the_integrated_speed_drifts()
     err_integrated = np.max(np.abs(x2 - _true(t2)[0]))
     assert err_driven < 1e-3                       # within a millimetre everywhere
     assert err_driven < err_integrated / 2
+
+
+def test_the_live_tracker_estimates_the_newest_position_within_its_stated_error():
+    """Causal fit at each 0.1 s block's end: errors against the truth match the stated standard
+    error (over the blocks of several noisy streams) and are well below the raw newest sample's."""
+    from maglev_ros.twin.trajectory import TrajectoryTracker
+    err, sds, raw = [], [], []
+    for seed in range(6):
+        t, xm, vm = _measured(seed=seed)
+        tr = TrajectoryTracker()
+        for k in range(0, t.size, 10):
+            last = min(k + 9, t.size - 1)
+            tr.add(t[k:k + 10], xm[k:k + 10], vm[k:k + 10])
+            t_next = t[last] + 1.0 / RATE_HZ
+            x, _v, sd = tr.estimate(t_next)
+            if sd > 0:
+                err.append(x - _true(t_next)[0])
+                sds.append(sd)
+                raw.append(xm[last] + vm[last] / RATE_HZ - _true(t_next)[0])
+    z = np.asarray(err) / np.asarray(sds)
+    print(f"z std {np.std(z):.3f}, rms error {np.sqrt(np.mean(np.square(err))) * 1e3:.2f} mm, "
+          f"raw {np.sqrt(np.mean(np.square(raw))) * 1e3:.2f} mm")
+    assert z.size > 300
+    assert 0.8 < np.std(z) < 1.25                      # the stated error is the real one
+    assert np.mean(np.abs(z) < 3) > 0.98
+    assert np.sqrt(np.mean(np.square(err))) < 0.5 * np.sqrt(np.mean(np.square(raw)))

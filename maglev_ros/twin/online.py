@@ -7,9 +7,11 @@ what every measured channel should read; residual = measured - predicted (no rcl
 - ``/testline/vehicle/position`` blocks drive a ``coupling.TwinStepper``: on the first one the
   stepper starts in static equilibrium one output step before the first position sample; each
   block advances it to the block's end (last sample + one position period) with the speed ramping
-  linearly to the block's last speed. If the integrated position drifts more than ``resync_m``
-  from the measured one, the twin's position is reset to the measured position (a jump; the
-  vehicle state is kept).
+  linearly to the block's last speed, unless that would leave the trajectory the stream gives
+  (``trajectory.TrajectoryTracker``: a quadratic fit to the last second of positions) by more
+  than the fit's uncertainty: then the speed ramps to the fit's, corrected to land on it (the
+  integrated speed channel random-walks away from the positions). Further off than ``resync_m``,
+  the twin's position is reset (a jump of the position system; the vehicle state is kept).
 - measured blocks (/testline/guideway/accel, /displacement, /vehicle/accel, /gap) are queued until
   the twin has advanced past their last sample; then the predicted block has the same stamp,
   rate, channels (those the twin can predict) and units, with the twin's output interpolated
@@ -89,6 +91,7 @@ from maglev_ros.errors import UserError
 from maglev_ros.sensor_block import Block
 from maglev_ros.twin.coupling import Irregularity, TwinStepper
 from maglev_ros.twin.design import twin_config
+from maglev_ros.twin.trajectory import TrajectoryTracker, ramp_speed
 
 __all__ = ["GROUP_TOPICS", "TOPIC_GROUPS", "PREDICTED_PREFIX", "RESIDUAL_PREFIX", "TwinOutput",
            "OnlineTwin", "periodic_random_irregularity", "nrmse", "IRREGULARITY_SOURCES"]
@@ -265,6 +268,7 @@ class OnlineTwin:
         self.revision = 0
         self.frame_id = "twin"
         self.n_resync = 0
+        self._track = TrajectoryTracker()
         self.n_dropped = 0
         # predictable channels
         self.guideway_x: dict[str, float] = {}
@@ -446,6 +450,7 @@ class OnlineTwin:
         dt_ns = int(round(1e9 / self.fs_hz))
         self.t0_ns = int(stamp_ns) - dt_ns
         self.stepper = self._new_stepper(0.0, position_m - speed_mps * dt_ns * 1e-9, speed_mps)
+        self._track = TrajectoryTracker()
         self._uncovered_s = 0.0                                   # static start: settle first
 
     def _rel(self, stamp_ns: int) -> float:
@@ -541,12 +546,23 @@ class OnlineTwin:
         if self.stepper is None:
             self._start(block.stamp_ns, float(pos[0]), float(vel[0]))
         dt = 1.0 / block.sample_rate_hz
-        t_last = self._rel(block.stamp_ns) + (block.n_samples - 1) * dt
-        self._advance(t_last + dt, float(vel[-1]))
-        expect = float(pos[-1]) + float(vel[-1]) * dt
-        if abs(self.stepper.position_m - expect) > self.resync_m:
-            self.stepper.position_m = expect
+        t_first = self._rel(block.stamp_ns)
+        t_last = t_first + (block.n_samples - 1) * dt
+        self._track.add(t_first + dt * np.arange(block.n_samples), pos, vel)
+        t_next = t_last + dt
+        x_next, v_next, x_sd = self._track.estimate(t_next)
+        h = t_next - self.stepper.time_s
+        v = float(vel[-1])
+        miss = self.stepper.position_m + 0.5 * (self.stepper.speed_mps + v) * h - x_next
+        if abs(miss) > self.resync_m:
+            # further off than any ramp should bring back: a jump of the position system
+            self.stepper.position_m -= miss
             self.n_resync += 1
+        elif abs(miss) > 3.0 * x_sd + 4.0 * float(np.spacing(np.float32(x_next))):
+            # the speed channel's integral left the positions' trajectory by more than its
+            # uncertainty (and the float32 samples' resolution): ramp back onto it
+            v = ramp_speed(self.stepper, t_next, x_next, v_next)
+        self._advance(t_next, v)
 
     @property
     def queued_position_blocks(self) -> int:

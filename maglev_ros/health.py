@@ -85,6 +85,7 @@ NOMINAL_GAP_M = 0.010
 #: DAQ clocks agree with their stated rate to ppm; 1 % plus one sample of stamp jitter per window
 RATE_TOLERANCE = 0.01
 RATE_WINDOW_SAMPLES = 200
+MIN_RATE_WINDOWS = 5         # windows the median is taken over, at least (a gap spoils the windows it falls in)
 
 
 def quantity_of(topic: str, channel: str) -> str | None:
@@ -112,6 +113,13 @@ def block_to_si(topic: str, block, where: str = ""):
 
 
 # ------------------------------------------------------------------------ stated rate
+def _window_blocks(n_blocks: int, counts) -> int:
+    """Blocks per rate window: RATE_WINDOW_SAMPLES samples, but at least MIN_RATE_WINDOWS windows
+    (on a short recording a window over every block holds any gap it has: median of one)."""
+    k = max(1, math.ceil(RATE_WINDOW_SAMPLES / max(float(np.median(counts)), 1.0)))
+    return max(1, min(k, (n_blocks - 1) // MIN_RATE_WINDOWS, n_blocks - 1))
+
+
 def stamp_rate_hz(stamps_ns, counts) -> float | None:
     """The rate the header stamps advance at [Hz]: median over windows of consecutive blocks with
     >= RATE_WINDOW_SAMPLES samples (robust to a dropped, doubled or shifted block)."""
@@ -123,7 +131,7 @@ def stamp_rate_hz(stamps_ns, counts) -> float | None:
     st, n = st[keep], n[keep]
     if st.size < 2:
         return None
-    k = min(max(1, math.ceil(RATE_WINDOW_SAMPLES / max(float(np.median(n)), 1.0))), st.size - 1)
+    k = _window_blocks(st.size, n)
     csum = np.concatenate([[0], np.cumsum(n)])
     samples = csum[k:st.size] - csum[:st.size - k]
     dt_s = (st[k:] - st[:-k]) * 1e-9
@@ -144,7 +152,7 @@ def rate_issue(topic: str, rates_hz, stamps_ns, counts) -> Issue | None:
         got = stamp_rate_hz(st[a:b], n[a:b])
         if got is None or not stated > 0:
             continue
-        per_window = max(RATE_WINDOW_SAMPLES, float(np.median(n[a:b])))
+        per_window = _window_blocks(b - a, n[a:b]) * float(np.median(n[a:b]))
         if abs(got / stated - 1.0) > RATE_TOLERANCE + 1.0 / per_window:
             return Issue("error", topic, None, float(st[a]) * 1e-9, "rate_mismatch",
                          f"header stamps advance at {got:.6g} Hz but sample_rate_hz says "

@@ -398,3 +398,16 @@ def test_shifted_topic_a_verb_does_not_read_is_a_warning(ambient, tmp_path, caps
     (w,) = health.warnings
     assert (w.kind, w.topic, w.severity) == ("time_offset", VEHICLE_POSITION, "warning")
     assert "offset +3600" in w.message
+
+
+def test_a_gap_in_a_short_recording_is_no_rate_mismatch_but_a_wrong_rate_is():
+    """On a 2 s stream of 0.1 s blocks a window of 200 samples spans every block, gap included:
+    the rate is the median over several shorter windows, so a 3-sample gap is not a wrong rate."""
+    from maglev_ros.health import rate_issue
+    rate, n = 100.0, 10
+    stamps = (np.arange(20) * n / rate * 1e9).astype(np.int64)
+    stamps[12:] += int(3 / rate * 1e9)                # three samples lost after the 12th block
+    assert rate_issue("/testline/vehicle/position", np.full(20, rate), stamps, np.full(20, n)) is None
+    slow = (np.arange(20) * n / 95.0 * 1e9).astype(np.int64)     # stamps really advance at 95 Hz
+    issue = rate_issue("/testline/vehicle/position", np.full(20, rate), slow, np.full(20, n))
+    assert issue is not None and issue.kind == "rate_mismatch"

@@ -1,7 +1,8 @@
 """Per-sample driver messages batched into contract SensorBlocks (no rclpy).
 
-Each contract topic has a sample grid: slot k at t0 + k / rate, t0 the first stamp received on the
-topic, rate the topic's stated rate (mapping ``rates_hz`` or the metadata's
+Each contract topic has a sample grid: slot k at t0 + k / rate, t0 whole blocks (covering
+``max_wait_s``) before the first stamp received on the topic (a sample another driver's first
+message overtook still has its slot), rate the topic's stated rate (mapping ``rates_hz`` or the metadata's
 ``acquisition.<topic>.sample_rate_hz``). A sample goes to the slot nearest its stamp, so channels of
 one topic are aligned by stamp whatever order their messages arrive in. Block b holds slots
 [b N, (b + 1) N) (N = round(block_s * rate)); its stamp is its first slot's time. A block is handed
@@ -105,11 +106,15 @@ class _TopicGrid:
         self.n = int(n_block)
         self.frame_id = frame_id
         self.wait_slots = max(1, int(round(max_wait_s * self.rate)))
+        # the grid starts this many whole blocks before the first stamp received: a sample that another
+        # driver's first message overtook still has its slot (start-up order is arbitrary)
+        self.lead_blocks = -(-self.wait_slots // self.n)
         self.t0: int | None = None
+        self.started = False
         self.open: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.next_b = 0
         self.last_slot = [-1] * self.nch
-        self.last_stamp = [0] * self.nch
+        self.last_rx = [None] * self.nch              # stamp of the channel's last sample, placed or not
         z = [0] * self.nch
         self.samples, self.missing, self.late, self.dup = list(z), list(z), list(z), list(z)
         self.off_grid, self.gaps, self.gap_samples = list(z), list(z), list(z)
@@ -120,7 +125,7 @@ class _TopicGrid:
 
     def put(self, cols, stamp_ns: int, values) -> list[Block]:
         if self.t0 is None:
-            self.t0 = stamp_ns
+            self.t0 = stamp_ns - int(round(self.lead_blocks * self.n * 1e9 / self.rate))
         x = (stamp_ns - self.t0) * self.rate * 1e-9
         k = math.floor(x + 0.5)
         if k < self.next_b * self.n:
@@ -135,6 +140,11 @@ class _TopicGrid:
         data, filled = ent
         row_d, row_f = data[i], filled[i]
         for c, v in zip(cols, values):
+            prev = self.last_rx[c]
+            if prev is not None and 0 < stamp_ns - prev < 1.5e9 / self.rate:
+                self.dt_sum_ns += stamp_ns - prev       # the stamps' own rate, not the grid's
+                self.dt_n += 1
+            self.last_rx[c] = stamp_ns
             if row_f[c]:
                 self.dup[c] += 1
                 continue
@@ -145,15 +155,10 @@ class _TopicGrid:
                 self.off_grid[c] += 1
             ls = self.last_slot[c]
             if k > ls:
-                if ls >= 0:
-                    if k == ls + 1:
-                        self.dt_sum_ns += stamp_ns - self.last_stamp[c]
-                        self.dt_n += 1
-                    else:
-                        self.gaps[c] += 1
-                        self.gap_samples[c] += k - ls - 1
+                if ls >= 0 and k > ls + 1:
+                    self.gaps[c] += 1
+                    self.gap_samples[c] += k - ls - 1
                 self.last_slot[c] = k
-                self.last_stamp[c] = stamp_ns
         if k >= (self.next_b + 1) * self.n - 1:
             return self._ready()
         return []
@@ -161,23 +166,26 @@ class _TopicGrid:
     def _ready(self) -> list[Block]:
         out = []
         lo, hi = min(self.last_slot), max(self.last_slot)
-        while self.open:
-            end = (self.next_b + 1) * self.n - 1
-            if not (lo >= end or hi - end > self.wait_slots):
-                break
-            blk = self._pop(self.next_b)
+        # the last block that may go: every channel is past its end, or one is max_wait_s past it
+        last = max((lo + 1) // self.n - 1, -(-(hi - self.wait_slots + 1) // self.n) - 2)
+        while self.open and self.next_b <= last:
+            blk = self._pop(self.next_b, last=last)
             if blk is not None:
                 out.append(blk)
         return out
 
-    def _pop(self, b: int, rows: int | None = None) -> Block | None:
+    def _pop(self, b: int, rows: int | None = None, last: int | None = None) -> Block | None:
         ent = self.open.pop(b, None)
         if ent is None:                 # nothing at all in it (or a run of them): on to the next open one
             nxt = min(self.open) if self.open else b + 1
-            self.empty += nxt - b
+            if last is not None:
+                nxt = min(nxt, last + 1)
+            if self.started:
+                self.empty += nxt - b
             self.next_b = nxt
             return None
         self.next_b = b + 1
+        self.started = True
         data, filled = ent
         if rows is not None:
             data, filled = data[:rows], filled[:rows]

@@ -176,8 +176,10 @@ def test_late_duplicate_and_lagging_channel():
     doc = {"block_s": 0.01, "rates_hz": {VA: RATE},
            "channels": {c: MAPPING["channels"][c] for c in ("M1A", "M2A")}}
     b = BlockBatcher(_mapping(doc), max_wait_s=0.02)
-    imu1 = lambda k, v=0.0: b.add_message("/daq/imu1", pm("sensor_msgs/msg/Imu", _stamp(k), [v + G0]))  # noqa: E731
-    imu2 = lambda k: b.add_message("/daq/imu2", pm("sensor_msgs/msg/Imu", _stamp(k), [-G0]))  # noqa: E731
+    wall = {"s": 0.0}
+    imu1 = lambda k, v=0.0: b.add_message("/daq/imu1", pm("sensor_msgs/msg/Imu", _stamp(k), [v + G0]),  # noqa: E731
+                                          now_s=wall["s"])
+    imu2 = lambda k: b.add_message("/daq/imu2", pm("sensor_msgs/msg/Imu", _stamp(k), [-G0]), now_s=wall["s"])  # noqa: E731
     out = []
     for k in range(10):
         out += imu1(k) + imu2(k)
@@ -189,7 +191,9 @@ def test_late_duplicate_and_lagging_channel():
     assert len(out) == 1                                  # block 1 waits for imu1 ...
     for k in range(20, 41):
         out += imu2(k)
-    assert len(out) == 2                                  # ... until imu2 is max_wait_s past its end
+    assert len(out) == 1 and b.poll(now_s=0.019) == []   # ... imu2 is max_wait_s past its end (stream) ...
+    out += b.poll(now_s=0.02)
+    assert len(out) == 2                                  # ... and it waited max_wait_s (wall)
     blk = out[1][1]
     assert np.isnan(blk.data[:, 0]).sum() == 9 and blk.data[2, 0] == 0.0 and not np.isnan(blk.data[:, 1]).any()
     [c1, c2] = b.stats().topics[0].channels

@@ -7,7 +7,9 @@ message overtook still has its slot), rate the topic's stated rate (mapping ``ra
 one topic are aligned by stamp whatever order their messages arrive in. Block b holds slots
 [b N, (b + 1) N) (N = round(block_s * rate)); its stamp is its first slot's time. A block is handed
 out when every channel of its topic has a sample at or after its last slot, or, when a channel
-stays behind, once another channel is ``max_wait_s`` past the block's end. A slot no sample came
+stays behind, once another channel is ``max_wait_s`` of stream time past the block's end and the
+block has waited ``max_wait_s`` of wall time since (``now_s``, monotonic; ``poll`` checks without
+a new sample). A slot no sample came
 for is NaN (counted ``missing``); a sample never moves to another slot than its stamp's. A sample
 for a block already handed out is ``late`` (dropped; its slot stayed NaN), a second sample for a
 filled slot is a ``duplicate`` (the first kept), a stamp more than a quarter period off the grid is
@@ -24,6 +26,7 @@ give a stamp element for such streams.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,7 +108,9 @@ class _TopicGrid:
         self.rate = float(rate_hz)
         self.n = int(n_block)
         self.frame_id = frame_id
+        self.max_wait_s = float(max_wait_s)
         self.wait_slots = max(1, int(round(max_wait_s * self.rate)))
+        self.lead_wall: dict[int, float] = {}       # block -> wall time a channel went max_wait_s past it
         # the grid starts this many whole blocks before the first stamp received: a sample that another
         # driver's first message overtook still has its slot (start-up order is arbitrary)
         self.lead_blocks = -(-self.wait_slots // self.n)
@@ -123,7 +128,7 @@ class _TopicGrid:
         self.blocks = 0
         self.empty = 0
 
-    def put(self, cols, stamp_ns: int, values) -> list[Block]:
+    def put(self, cols, stamp_ns: int, values, now_s: float) -> list[Block]:
         if self.t0 is None:
             self.t0 = stamp_ns - int(round(self.lead_blocks * self.n * 1e9 / self.rate))
         x = (stamp_ns - self.t0) * self.rate * 1e-9
@@ -139,6 +144,7 @@ class _TopicGrid:
             ent = self.open[b] = (np.full((self.n, self.nch), np.nan), np.zeros((self.n, self.nch), bool))
         data, filled = ent
         row_d, row_f = data[i], filled[i]
+        jumped = False
         for c, v in zip(cols, values):
             prev = self.last_rx[c]
             if prev is not None and 0 < stamp_ns - prev < 1.5e9 / self.rate:
@@ -158,35 +164,57 @@ class _TopicGrid:
                 if ls >= 0 and k > ls + 1:
                     self.gaps[c] += 1
                     self.gap_samples[c] += k - ls - 1
+                    jumped = True
                 self.last_slot[c] = k
-        if k >= (self.next_b + 1) * self.n - 1:
-            return self._ready()
+        # blocks can only become ready at a block's first or last slot or after a jump
+        if i == 0 or i == self.n - 1 or jumped:
+            return self.ready(now_s)
         return []
 
-    def _ready(self) -> list[Block]:
+    def _waited(self, b: int, now_s: float) -> bool:
+        t = self.lead_wall.get(b)
+        return t is not None and now_s - t >= self.max_wait_s
+
+    def ready(self, now_s: float) -> list[Block]:
+        """The blocks that may go: every channel has a sample at or after the block's end, or one is
+        ``max_wait_s`` of stream time past it and the block has waited ``max_wait_s`` of wall time
+        since (both: an unpaced stream runs ahead of the wall clock, a dead channel of neither)."""
         out = []
+        if not self.open:
+            return out
         lo, hi = min(self.last_slot), max(self.last_slot)
-        # the last block that may go: every channel is past its end, or one is max_wait_s past it
-        last = max((lo + 1) // self.n - 1, -(-(hi - self.wait_slots + 1) // self.n) - 2)
-        while self.open and self.next_b <= last:
-            blk = self._pop(self.next_b, last=last)
-            if blk is not None:
-                out.append(blk)
+        done_last = (lo + 1) // self.n - 1
+        lead_last = -(-(hi - self.wait_slots + 1) // self.n) - 2
+        for b in self.open:
+            if b <= lead_last and b not in self.lead_wall:
+                self.lead_wall[b] = now_s
+        while self.open:
+            b = self.next_b
+            if b not in self.open:          # no sample at all in it: on to the next open block once it may go
+                m = min(self.open)
+                if m <= done_last or self._waited(m, now_s):
+                    self._skip(m)
+                elif b <= done_last:
+                    self._skip(done_last + 1)
+                else:
+                    break
+                continue
+            if b <= done_last or self._waited(b, now_s):
+                out.append(self._pop(b))
+                continue
+            break
         return out
 
-    def _pop(self, b: int, rows: int | None = None, last: int | None = None) -> Block | None:
-        ent = self.open.pop(b, None)
-        if ent is None:                 # nothing at all in it (or a run of them): on to the next open one
-            nxt = min(self.open) if self.open else b + 1
-            if last is not None:
-                nxt = min(nxt, last + 1)
-            if self.started:
-                self.empty += nxt - b
-            self.next_b = nxt
-            return None
+    def _skip(self, to: int) -> None:
+        if self.started:
+            self.empty += to - self.next_b
+        self.next_b = to
+
+    def _pop(self, b: int, rows: int | None = None) -> Block:
+        data, filled = self.open.pop(b)
+        self.lead_wall.pop(b, None)
         self.next_b = b + 1
         self.started = True
-        data, filled = ent
         if rows is not None:
             data, filled = data[:rows], filled[:rows]
         have = filled.sum(axis=0)
@@ -200,13 +228,12 @@ class _TopicGrid:
         out = []
         while self.open:
             b = min(self.open)
-            last = b == max(self.open)
+            if b > self.next_b:
+                self._skip(b)
             rows = None
-            if last:
+            if len(self.open) == 1:         # the last block: cut after its last filled slot
                 rows = int(np.flatnonzero(self.open[b][1].any(axis=1)).max()) + 1
-            blk = self._pop(b, rows)
-            if blk is not None:
-                out.append(blk)
+            out.append(self._pop(b, rows))
         return out
 
     def stats(self) -> TopicStats:
@@ -260,7 +287,8 @@ class BlockBatcher:
         self.messages = {t: 0 for t in self.plans}
         self.malformed = {t: 0 for t in self.plans}
 
-    def add_message(self, driver_topic: str, msg, recv_ns: int = 0) -> list[tuple[str, Block]]:
+    def add_message(self, driver_topic: str, msg, recv_ns: int = 0,
+                    now_s: float | None = None) -> list[tuple[str, Block]]:
         plan = self.plans[driver_topic]
         try:
             stamp = plan.stamp_ns(msg, recv_ns)
@@ -268,19 +296,25 @@ class BlockBatcher:
         except (IndexError, AttributeError, TypeError, ValueError, OverflowError):
             self.malformed[driver_topic] += 1
             return []
-        return self._put(plan, stamp, raw)
+        return self._put(plan, stamp, raw, now_s)
 
-    def add_raw(self, driver_topic: str, stamp_ns: int, raw) -> list[tuple[str, Block]]:
-        return self._put(self.plans[driver_topic], int(stamp_ns), raw)
+    def add_raw(self, driver_topic: str, stamp_ns: int, raw, now_s: float | None = None) -> list[tuple[str, Block]]:
+        return self._put(self.plans[driver_topic], int(stamp_ns), raw, now_s)
 
-    def _put(self, plan: _DriverPlan, stamp: int, raw) -> list[tuple[str, Block]]:
+    def _put(self, plan: _DriverPlan, stamp: int, raw, now_s) -> list[tuple[str, Block]]:
         self.messages[plan.topic] += 1
+        now = time.monotonic() if now_s is None else now_s
         out = []
         for grid, cols, idx, scale, offset in plan.groups:
             vals = [raw[j] * s - o for j, s, o in zip(idx, scale, offset)]
-            for blk in grid.put(cols, stamp, vals):
+            for blk in grid.put(cols, stamp, vals, now):
                 out.append((grid.topic, blk))
         return out
+
+    def poll(self, now_s: float | None = None) -> list[tuple[str, Block]]:
+        """Blocks whose wait for a lagging channel ended (call now and then: no sample may come)."""
+        now = time.monotonic() if now_s is None else now_s
+        return [(t, b) for t, grid in self.grids.items() for b in grid.ready(now)]
 
     def flush(self) -> list[tuple[str, Block]]:
         out = []

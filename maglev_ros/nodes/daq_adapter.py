@@ -16,8 +16,8 @@ stamp rate other than the stated one, malformed messages) and ``maglev/status`` 
 ``detail`` the counts as JSON, updated every second).
 
 Parameters: ``mapping`` (mapping YAML, required), ``metadata`` (metadata YAML/JSON, required),
-``max_wait_s`` (0.5: a block waits at most this long of stream time for a lagging channel, then
-goes out with NaN there), ``idle_flush_s`` (1.0: no driver message for this long of wall time hands
+``max_wait_s`` (0.5: a block waits at most this long, of stream time and of wall time, for a lagging
+channel, then goes out with NaN there), ``idle_flush_s`` (1.0: no driver message for this long of wall time hands
 out the open blocks), ``frame_id`` ("daq"), ``wait_subscribers`` (0: before subscribing to the
 drivers, wait until every contract topic it publishes has this many subscribers, at most
 ``wait_timeout_s``; tests and demos lose nothing at the start).
@@ -42,7 +42,7 @@ from maglev_ros.nodes._qos import SensorSubscription, publisher
 PARAMS = (
     Param("mapping", "", "mapping YAML: driver topic and field -> contract channel (docs/daq_stream.md)"),
     Param("metadata", "", "the recording's metadata, YAML or JSON (the contract's document)"),
-    Param("max_wait_s", 0.5, "a block waits at most this long of stream time for a lagging channel [s]",
+    Param("max_wait_s", 0.5, "a block waits at most this long (stream and wall time) for a lagging channel [s]",
           range=(0.0, 3600.0)),
     Param("idle_flush_s", 1.0, "no driver message for this long hands out the open blocks [s] (0: never)",
           range=(0.0, 1e6), apply=lambda node, v: setattr(node, "idle_flush_s", v)),
@@ -141,6 +141,8 @@ class DaqAdapterNode(Node):
         self.blocks_out += 1
 
     def _idle(self) -> None:
+        for t, blk in self.batcher.poll():          # blocks whose wait for a lagging channel is over
+            self._publish(t, blk)
         if self.last_msg is None or not self.idle_flush_s:
             return
         if time.monotonic() - self.last_msg < self.idle_flush_s:

@@ -26,11 +26,13 @@ give a stamp element for such streams.
 from __future__ import annotations
 
 import math
+import struct
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from maglev_ros.daq_stream.cdr import field_reader
 from maglev_ros.daq_stream.mapping import DaqMapping
 from maglev_ros.sensor_block import Block
 
@@ -252,6 +254,9 @@ class _DriverPlan:
         self.header = driver.has_header
         self.stamp_index = driver.stamp_index
         self.getters = [s.getter() for s in driver.channels]
+        self.msg_type = driver.msg_type
+        self.cdr = field_reader(driver.msg_type, [s.field if s.index is None else s.index for s in driver.channels],
+                                driver.stamp_index)
         groups: dict[str, list] = {}
         for j, s in enumerate(driver.channels):
             grid = grids[s.contract_topic]
@@ -297,6 +302,17 @@ class BlockBatcher:
             self.malformed[driver_topic] += 1
             return []
         return self._put(plan, stamp, raw, now_s)
+
+    def add_cdr(self, driver_topic: str, buf, recv_ns: int = 0,
+                now_s: float | None = None) -> list[tuple[str, Block]] | None:
+        """The same from the message's serialised bytes (daq_stream.cdr); None when they are not
+        little-endian CDR the reader knows (deserialise and use :meth:`add_message` then)."""
+        plan = self.plans[driver_topic]
+        try:
+            stamp, raw = plan.cdr(buf)
+        except (ValueError, IndexError, struct.error):
+            return None
+        return self._put(plan, recv_ns if stamp is None else stamp, raw, now_s)
 
     def add_raw(self, driver_topic: str, stamp_ns: int, raw, now_s: float | None = None) -> list[tuple[str, Block]]:
         return self._put(self.plans[driver_topic], int(stamp_ns), raw, now_s)

@@ -112,7 +112,8 @@ class DaqAdapterNode(Node):
         self._gate.cancel()
         for d in self.mapping.drivers.values():
             cls = message_class(d.msg_type)
-            sub = SensorSubscription(self, cls, d.topic, self._cb(d.topic, d.stamp_source == "receive"), qos=QOS_STREAM)
+            sub = SensorSubscription(self, cls, d.topic, self._cb(d.topic, cls, d.stamp_source == "receive"),
+                                     qos=QOS_STREAM, raw=True)
             if sub.adapts:            # one timer checks them all (rclpy warns about many timers on a clock)
                 self.destroy_timer(sub.timer)
             self.subs.append(sub)
@@ -125,14 +126,24 @@ class DaqAdapterNode(Node):
                 sub.adapt()
 
     # ------------------------------------------------------------------ data
-    def _cb(self, topic: str, receive_stamp: bool):
-        add = self.batcher.add_message
+    def _cb(self, topic: str, cls, receive_stamp: bool):
+        """The raw (serialised) message's mapped fields read at their CDR offsets (daq_stream.cdr: a
+        fraction of rclpy's deserialisation); rclpy's deserialisation for what that reader does not take."""
+        from rclpy.serialization import deserialize_message
+        add_cdr, add = self.batcher.add_cdr, self.batcher.add_message
         clock = self.get_clock()
 
-        def on_msg(msg) -> None:
+        def on_msg(buf) -> None:
             self.last_msg = time.monotonic()
             recv = clock.now().nanoseconds if receive_stamp else 0
-            for t, blk in add(topic, msg, recv):
+            out = add_cdr(topic, buf, recv)
+            if out is None:
+                try:
+                    out = add(topic, deserialize_message(buf, cls), recv)
+                except Exception:  # noqa: BLE001  (bytes rclpy cannot read either: counted, never fatal)
+                    self.batcher.malformed[topic] += 1
+                    return
+            for t, blk in out:
                 self._publish(t, blk)
         return on_msg
 

@@ -67,6 +67,7 @@ def bench_core(src, mapping_path, meta_path):
 
 
 def bench_ros(env, meta_path, mapping_path, seconds, rate, reliable):
+    """One run; unpaced (reliable: nothing lost) the adapter waits for a lagging topic as long as it takes."""
     import rclpy
     from rclpy.context import Context
     from rclpy.experimental import EventsExecutor
@@ -75,7 +76,8 @@ def bench_ros(env, meta_path, mapping_path, seconds, rate, reliable):
     from maglev_ros.nodes._lifecycle import QOS_STATUS_READER, TOPIC_STATUS, NodeStatus
     py = [sys.executable, "-m"]
     adapter = subprocess.Popen(py + ["maglev_ros.nodes.daq_adapter", "--ros-args", "-p", f"mapping:={mapping_path}",
-                                     "-p", f"metadata:={meta_path}", "-p", "idle_flush_s:=0.5"],
+                                     "-p", f"metadata:={meta_path}", "-p", f"idle_flush_s:={0.0 if not rate else 0.5}",
+                                     "-p", f"max_wait_s:={60.0 if not rate else 0.5}"],
                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     ctx = Context()
     rclpy.init(context=ctx)

@@ -81,7 +81,13 @@ def run(tmp_path_factory):
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         # every contract topic: this test's subscriber and the twin's before the drivers' data is taken
         adapter = subprocess.Popen(py + ["maglev_ros.nodes.daq_adapter", "--ros-args", "-p", f"mapping:={mapping}",
-                                         "-p", f"metadata:={meta}", "-p", "wait_subscribers:=2"],
+                                         "-p", f"metadata:={meta}", "-p", "wait_subscribers:=2",
+                                         # unpaced and reliable, one driver topic may lag the others by
+                                         # seconds; nothing is lost, so no block need go without it
+                                         "-p", "max_wait_s:=60.0",
+                                         # a reliable writer's retransmission can stall a topic for
+                                         # seconds under load: no hand-out of open blocks on a pause
+                                         "-p", "idle_flush_s:=0.0"],
                                    env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         sim = subprocess.Popen(py + ["maglev_ros.nodes.daq_sim", "--ros-args", "-p", f"bag:={BAG}",
                                      "-p", f"start_s:={START_S}", "-p", f"duration_s:={DURATION_S}", "-p", "rate:=0.0",

@@ -28,16 +28,22 @@ import json
 import sys
 import time
 
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from std_msgs.msg import String
+from sensor_msgs.msg import Imu, Range
+from std_msgs.msg import Float64, Float64MultiArray, String
 
 from maglev_msgs.msg import SensorBlock
 from maglev_ros.contract import TOPIC_METADATA
-from maglev_ros.nodes._common import QOS_STREAM, message_class, msg_from_block, run_node
+from maglev_ros.nodes._common import QOS_STREAM, msg_from_block, run_node
 from maglev_ros.nodes._diagnostics import ERROR, OK, WARN, Check, NodeDiagnostics
 from maglev_ros.nodes._lifecycle import NodeLifecycle
 from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import SensorSubscription, publisher
+
+# the mapping's types (daq_stream.mapping.DRIVER_TYPES) -> rclpy classes
+DRIVER_CLASSES = {"sensor_msgs/msg/Imu": Imu, "sensor_msgs/msg/Range": Range, "nav_msgs/msg/Odometry": Odometry,
+                  "std_msgs/msg/Float64": Float64, "std_msgs/msg/Float64MultiArray": Float64MultiArray}
 
 PARAMS = (
     Param("mapping", "", "mapping YAML: driver topic and field -> contract channel (docs/daq_stream.md)"),
@@ -111,7 +117,7 @@ class DaqAdapterNode(Node):
         self._subscribed = True
         self._gate.cancel()
         for d in self.mapping.drivers.values():
-            cls = message_class(d.msg_type)
+            cls = DRIVER_CLASSES[d.msg_type]
             sub = SensorSubscription(self, cls, d.topic, self._cb(d.topic, cls, d.stamp_source == "receive"),
                                      qos=QOS_STREAM, raw=True)
             if sub.adapts:            # one timer checks them all (rclpy warns about many timers on a clock)

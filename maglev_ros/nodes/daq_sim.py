@@ -23,7 +23,8 @@ import time
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
-from maglev_ros.nodes._common import QOS_STREAM, message_class, rel, run_node
+from maglev_ros.nodes._common import QOS_STREAM, rel, run_node
+from maglev_ros.nodes.daq_adapter import DRIVER_CLASSES
 from maglev_ros.nodes._params import Param, declare
 
 PARAMS = (
@@ -123,7 +124,7 @@ class DaqSimNode(Node):
         self.reliable = v["reliable"]
         self.pubs, self.msgs = [], []
         for s in self.source.streams:
-            cls = message_class(s.msg_type)
+            cls = DRIVER_CLASSES[s.msg_type]
             self.pubs.append(self.create_publisher(cls, rel(s.topic), qos))
             self.msgs.append(_Serialised(_template(cls, s.msg_type, s.topic), s.msg_type, s.values.shape[1]))
         self.stream_idx, self.rows = self.source.order()

@@ -20,6 +20,8 @@ import struct
 import sys
 import time
 
+from rclpy.duration import Duration
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
@@ -40,6 +42,8 @@ PARAMS = (
     Param("wait_timeout_s", 120.0, "wait at most this long for them [s]", range=(0.0, 1e6)),
 )
 CHUNK = 2000        # messages per timer tick when unpaced
+# what rclpy raises when the writer cannot queue a message (rmw: "cannot publish data")
+RCLError = _rclpy.RCLError
 
 
 _F64, _F32 = struct.Struct("<d"), struct.Struct("<f")
@@ -160,13 +164,20 @@ class DaqSimNode(Node):
             st = int(s.stamps_ns[r])
             if self.rate > 0 and st > now_stream:
                 break
-            self.pubs[k].publish(self.msgs[k].message(st, s.values[r]))
+            try:
+                self.pubs[k].publish(self.msgs[k].message(st, s.values[r]))
+            except RCLError:
+                if not self.reliable:
+                    raise
+                # reliable keep-all: the writer's history is full until a subscriber acknowledges;
+                # offered again on the next tick (the driver is paced by its slowest subscriber)
+                self.pubs[k].wait_for_all_acked(Duration(seconds=0.05))
+                break
             i += 1
         self.sent += i - self.next
         self.next = i
         if self.next >= n:
             if self.reliable:
-                from rclpy.duration import Duration
                 for p in self.pubs:
                     p.wait_for_all_acked(Duration(seconds=30))
             took = time.monotonic() - self.t_wall0

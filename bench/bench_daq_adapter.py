@@ -65,6 +65,35 @@ def bench_core(src, mapping_path, meta_path):
     print(f"  peer: read the mapped fields only   {n / best_peer:12,.0f} samples/s")
     print(f"  BlockBatcher.add_message            {n / best_core:12,.0f} samples/s  = {n / best_core / NEED:6.1f}x "
           f"the line's 34 k/s; {best_peer / best_core:.2f}x the peer's rate")
+    try:       # what the node does: serialised messages, fields read at their CDR offsets
+        from rclpy.serialization import deserialize_message
+
+        from maglev_ros.nodes.daq_adapter import DRIVER_CLASSES
+        from maglev_ros.nodes.daq_sim import _Serialised, _template
+    except ImportError:
+        return
+    ser = [_Serialised(_template(DRIVER_CLASSES[s.msg_type], s.msg_type, s.topic), s.msg_type, s.values.shape[1])
+           for s in src.streams]
+    raw = [(src.streams[i].topic, ser[i].message(int(src.streams[i].stamps_ns[r]), src.streams[i].values[r]))
+           for i, r in zip(idx, rows)]
+    classes = {s.topic: DRIVER_CLASSES[s.msg_type] for s in src.streams}
+    best_cdr = best_rclpy = float("inf")
+    for _ in range(2):
+        b = BlockBatcher(mapping)
+        t = time.perf_counter()
+        for topic, buf in raw:
+            b.add_cdr(topic, buf)
+        b.flush()
+        best_cdr = min(best_cdr, time.perf_counter() - t)
+        assert b.stats().total("samples") == n
+        b = BlockBatcher(mapping)
+        t = time.perf_counter()
+        for topic, buf in raw:
+            b.add_message(topic, deserialize_message(buf, classes[topic]))
+        b.flush()
+        best_rclpy = min(best_rclpy, time.perf_counter() - t)
+    print(f"  BlockBatcher.add_cdr (the node's)   {n / best_cdr:12,.0f} samples/s  = {n / best_cdr / NEED:6.1f}x; "
+          f"rclpy deserialisation + add_message {n / best_rclpy:,.0f} samples/s ({best_rclpy / best_cdr:.1f}x slower)")
 
 
 def bench_ros(env, meta_path, mapping_path, seconds, rate, reliable):

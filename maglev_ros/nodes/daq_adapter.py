@@ -103,6 +103,10 @@ class DaqAdapterNode(Node):
         for t in m.contract_topics:
             self.get_logger().info(f"{t}: {len(m.on_topic(t))} channel(s) at {m.rates_hz[t]:g} Hz, "
                                    f"blocks of {m.block_samples(t)}")
+        unmapped = [sid for sid in self.metadata.sensors if sid not in {c.name for c in m.channels}]
+        if unmapped:      # the nodes then see a recording without them, as a bag that lacks them
+            self.get_logger().warning(f"{m.source}: the metadata's sensors {', '.join(unmapped)} have no channel "
+                                      f"in the mapping; they are not published")
 
     # ------------------------------------------------------------------ start-up
     def _subscribe_when_ready(self) -> None:

@@ -230,3 +230,16 @@ def test_best_effort_driver_stream_values_stay_at_their_stamps(tmp_path):
                 np.testing.assert_allclose(row[have], want[have], rtol=2e-7, atol=1e-9)
                 n_values += int(have.sum())
     assert n_values == counts["samples"]
+
+
+def test_a_mapping_mistake_stops_the_node_with_one_line(tmp_path):
+    import yaml
+    meta, mapping = write_config(source_from_bag(BAG, 0.0, 0.05), tmp_path)
+    doc = yaml.safe_load(mapping.read_text())
+    doc["channels"]["M1A"]["field"] = "linear_acceleration.q"
+    mapping.write_text(yaml.safe_dump(doc))
+    p = subprocess.run([sys.executable, "-m", "maglev_ros.nodes.daq_adapter", "--ros-args", "-p", f"mapping:={mapping}",
+                        "-p", f"metadata:={meta}"], env=ros_env(63), capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 1 and len(lines) == 1, p.stderr
+    assert f"{mapping}: mapping key channels.M1A.field: expected a numeric field of sensor_msgs/msg/Imu" in lines[0]

@@ -1,9 +1,10 @@
 """ROS 2 launch file of the monitor graph, for users with a full ROS 2 install.
 
     ros2 launch maglev_ros monitor.launch.py bag:=/path/to/recording.mcap rate:=2.0 namespace:=/line1
+    ros2 launch maglev_ros monitor.launch.py adapter:=mapping.yaml metadata:=metadata.yaml   # live DAQ
 
 The same graph as ``maglev-ros launch monitor`` with the same arguments (bag, rate, fast,
-params_file, namespace, use_sim_time, out, history, linger_s: maglev_ros.launch_graph's
+params_file, namespace, use_sim_time, out, history, adapter, metadata, linger_s: maglev_ros.launch_graph's
 LAUNCH_ARGUMENTS): every node's parameters, namespace and remappings, and the replay's start-up
 gating (it waits for the graph's other nodes and a subscriber on every data topic), come from
 maglev_ros.launch_graph.node_launches, which our launcher uses too.
@@ -29,7 +30,8 @@ def _nodes(context, *args, **kwargs):
     for nl in node_launches("monitor", bag=arg("bag") or None, overrides=overrides,
                             params_file=arg("params_file") or None, namespace=arg("namespace"),
                             use_sim_time=flag("use_sim_time"), linger_s=float(arg("linger_s")),
-                            results_timeout_s=float(arg("results_timeout_s"))):
+                            results_timeout_s=float(arg("results_timeout_s")),
+                            adapter=arg("adapter") or None, metadata=arg("metadata") or None):
         # a params file first, then the computed parameters (they win, as -p after --params-file)
         parameters = ([nl.params_file] if nl.params_file else []) + [nl.params]
         nodes.append(Node(package="maglev_ros", executable=nl.name, name=nl.name,

@@ -56,6 +56,26 @@ def recorder_spec(path, include_inputs: bool = False, reliable: bool = False,
                     runs_until_stopped=True)
 
 
+def adapter_spec(mapping, metadata) -> NodeSpec:
+    """The DAQ adapter (maglev_ros.nodes.daq_adapter) as the graph's source instead of a replay: live
+    driver streams -> contract SensorBlocks; it takes the drivers' data once every contract topic it
+    publishes has a subscriber (the graph's nodes are up), at most WAIT_TIMEOUT_S."""
+    import os
+    return NodeSpec("daq_adapter", "maglev_ros.nodes.daq_adapter",
+                    params={"mapping": os.path.abspath(mapping), "metadata": os.path.abspath(metadata),
+                            "wait_subscribers": 1, "wait_timeout_s": WAIT_TIMEOUT_S},
+                    runs_until_stopped=True)
+
+
+def daq_sim_spec(bag, rate: float = 1.0, reliable: bool = False) -> NodeSpec:
+    """The DAQ simulator (maglev_ros.nodes.daq_sim) publishing ``bag`` as driver streams; it starts
+    once the adapter subscribes to every driver topic and ends when the bag is out."""
+    import os
+    return NodeSpec("daq_sim", "maglev_ros.nodes.daq_sim",
+                    params={"bag": os.path.abspath(bag), "rate": float(rate), "reliable": bool(reliable),
+                            "wait_subscribers": 1, "wait_timeout_s": WAIT_TIMEOUT_S})
+
+
 VIEW_PORT = 8765          # Foxglove's usual WebSocket port
 
 
@@ -104,6 +124,9 @@ LAUNCH_ARGUMENTS = (
     ("use_sim_time", "false", "nodes run on the replay's /clock (the replay itself on wall time)"),
     ("out", "out/monitor", "output directory: the updater's parameter history goes there"),
     ("history", "", "the updater's parameter history (default OUT/twin_parameters.jsonl)"),
+    ("adapter", "", "the DAQ adapter's mapping YAML: live driver streams instead of a replay "
+                    "(docs/daq_stream.md; needs metadata)"),
+    ("metadata", "", "the recording's metadata (YAML or JSON) the DAQ adapter publishes"),
     ("linger_s", "2.0", "extra time the replay (and our launcher: the graph) stays after its end, "
                         "which comes once every node has published the last recording's results"),
     ("results_timeout_s", "900.0", "after each recording, wait at most this long for the nodes' results "
@@ -153,17 +176,26 @@ def launch_overrides(rate: float = 1.0, fast: bool = False, out: str = "out/moni
 def node_launches(graph_name: str, bag: str | None = None, overrides: dict | None = None,
                   params_file: str | None = None, namespace: str = "", use_sim_time: bool = False,
                   linger_s: float = 2.0, extra=(), bags: list[str] | None = None,
-                  results_timeout_s: float | None = None) -> list[NodeLaunch]:
+                  results_timeout_s: float | None = None, adapter: str | None = None,
+                  metadata: str | None = None) -> list[NodeLaunch]:
     """What every node of ``graph_name`` (plus ``extra`` NodeSpecs) gets in a launch.
 
     The replay (only with a bag) starts when every other node of the graph is up and every data
     topic has a subscriber (at most WAIT_TIMEOUT_S each) and lingers ``linger_s`` after its end; in a
     ``namespace`` every node runs there and /clock is remapped into it; ``use_sim_time`` puts every
-    node but the replay on /clock; ``overrides`` ({node: {param: value}}) come last."""
+    node but the replay on /clock; ``overrides`` ({node: {param: value}}) come last. ``adapter`` (a
+    mapping file, with ``metadata``): the DAQ adapter is the graph's source (no bag then)."""
+    from maglev_ros.errors import UserError
     overrides = overrides or {}
     ns = check_namespace(namespace)
     bags = list(bags or ([bag] if bag else []))
-    specs = [s for s in list(graph(graph_name)) + list(extra) if bags or not s.needs_bag]
+    if bool(adapter) != bool(metadata):
+        raise UserError("the DAQ adapter needs both its mapping (adapter) and the recording's metadata "
+                        f"(metadata); got only {'adapter' if adapter else 'metadata'}")
+    if adapter and bags:
+        raise UserError("the DAQ adapter (live streams) and a replayed bag are two sources: give one")
+    sources = [adapter_spec(adapter, metadata)] if adapter else []
+    specs = [s for s in list(graph(graph_name)) + sources + list(extra) if bags or not s.needs_bag]
     others = [s.name for s in specs if not s.needs_bag and not s.observer]
     remaps = (("/clock", f"{ns}/clock"),) if ns else ()
     out = []

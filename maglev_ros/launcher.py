@@ -80,19 +80,22 @@ def _pump(name: str, stream, out) -> None:
 def command_lines(graph_name: str, bag: str | None = None, overrides: dict | None = None,
                   params_file: str | None = None, linger_s: float = 2.0, namespace: str = "",
                   use_sim_time: bool = False, extra: list[NodeSpec] = (), bags: list[str] | None = None,
-                  results_timeout_s: float | None = None) -> list[tuple[NodeSpec, list[str]]]:
+                  results_timeout_s: float | None = None, adapter: str | None = None,
+                  metadata: str | None = None) -> list[tuple[NodeSpec, list[str]]]:
     """(spec, command line) of every node :func:`launch` starts with these arguments."""
     return [(nl.spec, [sys.executable, "-u", "-m", nl.module, *ros_args(nl)])
             for nl in node_launches(graph_name, bag=bag, overrides=overrides, params_file=params_file,
                                     namespace=namespace, use_sim_time=use_sim_time, linger_s=linger_s,
-                                    extra=extra, bags=bags, results_timeout_s=results_timeout_s)]
+                                    extra=extra, bags=bags, results_timeout_s=results_timeout_s,
+                                    adapter=adapter, metadata=metadata)]
 
 
 def launch(graph_name: str, bag: str | None = None, overrides: dict | None = None,
            params_file: str | None = None, linger_s: float = 2.0, env: dict | None = None,
            out=sys.stderr, on_started=None, extra: list[NodeSpec] = (), namespace: str = "",
            use_sim_time: bool = False, bags: list[str] | None = None,
-           results_timeout_s: float | None = None) -> int:
+           results_timeout_s: float | None = None, adapter: str | None = None,
+           metadata: str | None = None) -> int:
     """Run a graph until its replay of ``bag`` (or ``bags``, in order) has ended and the graph's
     results are out. Returns 0 when every node ran and ended as it should, 130 on Ctrl-C; raises
     :class:`GraphFailure` (after stopping the graph) when a node failed."""
@@ -101,7 +104,7 @@ def launch(graph_name: str, bag: str | None = None, overrides: dict | None = Non
     penv = dict(os.environ if env is None else env)
     cmds = command_lines(graph_name, bag=bag, overrides=overrides, params_file=params_file, linger_s=linger_s,
                          namespace=namespace, use_sim_time=use_sim_time, extra=extra, bags=bags,
-                         results_timeout_s=results_timeout_s)
+                         results_timeout_s=results_timeout_s, adapter=adapter, metadata=metadata)
     try:
         for spec, cmd in cmds:
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

@@ -21,6 +21,15 @@ def add_arguments(p) -> None:
     p.add_argument("--bag", nargs="+", metavar="BAG",
                    help="replay this bag through the graph (several: one after the other, each with "
                         "its results before the next)")
+    p.add_argument("--adapter", metavar="MAPPING.yaml",
+                   help="live DAQ streams instead of a replay: the DAQ adapter with this mapping "
+                        "(driver topic and field -> contract channel; docs/daq_stream.md); needs --metadata")
+    p.add_argument("--metadata", metavar="META.yaml",
+                   help="with --adapter: the recording's metadata (the contract's document, YAML or JSON)")
+    p.add_argument("--daq-sim", metavar="BAG",
+                   help="demo of live streams: the DAQ simulator publishes BAG's samples as driver messages "
+                        "(at --rate) and the DAQ adapter feeds them to the graph; its mapping and metadata "
+                        "are written to DIR/daq (--out)")
     p.add_argument("--rate", type=float, default=float(default["rate"]), help="replay rate (0.1-100)")
     p.add_argument("--fast", action="store_true", help="replay as fast as possible")
     p.add_argument("--params-file", help="ROS 2 parameters YAML passed to every node")
@@ -73,7 +82,25 @@ def launch_kwargs(args) -> dict:
         raise UserError(f"--linger: expected seconds >= 0, got {args.linger}")
     if args.results_timeout < 0:
         raise UserError(f"--results-timeout: expected seconds >= 0, got {args.results_timeout}")
-    return dict(bags=args.bag, params_file=args.params_file, linger_s=args.linger,
+    adapter, metadata = getattr(args, "adapter", None), getattr(args, "metadata", None)
+    sim = getattr(args, "daq_sim", None)
+    if sim and (adapter or metadata):
+        raise UserError("--daq-sim writes its own mapping and metadata: give it without --adapter / --metadata")
+    if sim and args.bag:
+        raise UserError("--daq-sim and --bag are two sources: give one")
+    if sim and not os.path.exists(sim):
+        raise UserError(f"--daq-sim {sim}: no such bag")
+    if bool(adapter) != bool(metadata):
+        raise UserError("--adapter and --metadata: give both (the mapping and the recording's metadata)")
+    if adapter and args.bag:
+        raise UserError("--adapter (live streams) and --bag (a replay) are two sources: give one")
+    for opt, path in (("--adapter", adapter), ("--metadata", metadata)):
+        if path and not os.path.isfile(path):
+            raise UserError(f"{opt} {path}: no such file")
+    if adapter:
+        from maglev_ros.daq_stream.mapping import load_mapping, load_metadata_file
+        load_mapping(adapter, load_metadata_file(metadata))      # its mistakes before any node starts
+    return dict(adapter=adapter, metadata=metadata, bags=args.bag, params_file=args.params_file, linger_s=args.linger,
                 results_timeout_s=args.results_timeout,
                 namespace=check_namespace(args.namespace), use_sim_time=bool(args.use_sim_time),
                 overrides=launch_overrides(rate=args.rate, fast=args.fast, out=args.out, history=args.history))
@@ -109,6 +136,14 @@ def run(args) -> int:
         history.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"--out {history.parent}: cannot create directory ({exc.strerror})") from None
+    if args.daq_sim:
+        from maglev_ros.daq_stream.sim import source_from_bag, write_config
+        from maglev_ros.launch_graph import daq_sim_spec
+        meta, mapping = write_config(source_from_bag(args.daq_sim), Path(args.out) / "daq")
+        print(f"daq_sim: {args.daq_sim} as driver streams; mapping {mapping.resolve()}, metadata {meta.resolve()}",
+              flush=True)
+        kwargs.update(adapter=str(mapping), metadata=str(meta))
+        extra.append(daq_sim_spec(args.daq_sim, rate=0.0 if args.fast else args.rate, reliable=bool(args.fast)))
     print(f"launch {args.graph}: outputs in {history.parent.resolve()}; parameter history "
           f"{history.resolve()}" + (f"; namespace {kwargs['namespace']}" if kwargs["namespace"] else "")
           + (f"; recording to {Path(args.record).resolve()}" if args.record else ""), flush=True)

@@ -36,7 +36,13 @@ def _allowed_types() -> dict[str, tuple[str, str]]:
     table = {f"maglev_msgs/msg/{n}": ("maglev_msgs.msg", n) for n in MSG_NAMES}
     table.update({"std_msgs/msg/String": ("std_msgs.msg", "String"),
                   "rosgraph_msgs/msg/Clock": ("rosgraph_msgs.msg", "Clock"),
-                  "diagnostic_msgs/msg/DiagnosticArray": ("diagnostic_msgs.msg", "DiagnosticArray")})
+                  "diagnostic_msgs/msg/DiagnosticArray": ("diagnostic_msgs.msg", "DiagnosticArray"),
+                  # what DAQ drivers publish per sample (nodes/daq_adapter.py, daq_sim.py)
+                  "std_msgs/msg/Float64": ("std_msgs.msg", "Float64"),
+                  "std_msgs/msg/Float64MultiArray": ("std_msgs.msg", "Float64MultiArray"),
+                  "sensor_msgs/msg/Imu": ("sensor_msgs.msg", "Imu"),
+                  "sensor_msgs/msg/Range": ("sensor_msgs.msg", "Range"),
+                  "nav_msgs/msg/Odometry": ("nav_msgs.msg", "Odometry")})
     return table
 
 

@@ -116,6 +116,12 @@ class NodeLifecycle:
             self.status.state, self.status.detail = READY, detail
             self._say()
 
+    def set_detail(self, detail: str) -> None:
+        """Say a new ``detail`` (a source node's counts); nothing is published when it is unchanged."""
+        if detail != self.status.detail:
+            self.status.detail = detail
+            self._say()
+
     def _say(self) -> None:
         msg = String()
         msg.data = self.status.to_json()

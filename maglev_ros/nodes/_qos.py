@@ -98,11 +98,13 @@ class SensorSubscription:
 
     CHECK_PERIOD_S = 1.0
 
-    def __init__(self, node, msg_type, topic: str, callback, qos: QoSProfile | None = None) -> None:
+    def __init__(self, node, msg_type, topic: str, callback, qos: QoSProfile | None = None,
+                 raw: bool = False) -> None:
         self.node, self.msg_type, self.topic, self.callback = node, msg_type, topic, callback
+        self.raw = raw                               # the callback takes the serialised bytes
         self.qos = copy.copy(qos) if qos is not None else qos_for(topic)
         self.sub = node.create_subscription(msg_type, rel(topic), callback, self.qos,
-                                            qos_overriding_options=_overrides())
+                                            qos_overriding_options=_overrides(), raw=raw)
         # rclpy wrote the overrides into self.qos: an override to best effort matches every publisher
         self.adapts = self.qos.reliability == ReliabilityPolicy.RELIABLE
         self.name = self.sub.topic_name              # fully qualified (namespace, remappings)
@@ -135,5 +137,5 @@ class SensorSubscription:
         qos = copy.copy(self.qos)
         qos.reliability = reliability
         self.node.destroy_subscription(self.sub)
-        self.sub = self.node.create_subscription(self.msg_type, self.name, self.callback, qos)
+        self.sub = self.node.create_subscription(self.msg_type, self.name, self.callback, qos, raw=self.raw)
         self.node.get_logger().info(f"{self.name}: {why}: subscribing {reliability.name.lower()}")

@@ -285,7 +285,7 @@ def test_rates_from_the_metadata_and_a_conflict(tmp_path):
     (tmp_path / "meta.yaml").write_text(yaml.safe_dump(_metadata().to_dict()))
     m = load_mapping(tmp_path / "m.yaml", load_metadata_file(tmp_path / "meta.yaml"))
     assert m.source == str(tmp_path / "m.yaml") and len(m.channels) == 7
-    with pytest.raises(UserError, match=r"no such mapping file"):
+    with pytest.raises(UserError, match=r"mapping file not found"):
         load_mapping(tmp_path / "none.yaml", _metadata())
 
 

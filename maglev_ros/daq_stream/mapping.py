@@ -17,15 +17,15 @@ fields (no rclpy here, and a typo must fail at load, not at the first message).
 """
 from __future__ import annotations
 
-import json
 import math
 import operator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from maglev_ros.contract import (DATA_TOPICS, POSITION_CHANNEL_UNITS, TOPIC_VEHICLE_POSITION, Metadata,
-                                 expected_unit, metadata_from_dict, unit_conversion)
+                                 expected_unit, unit_conversion)
 from maglev_ros.errors import UserError
+from maglev_ros.metadata_file import load_yaml, metadata_from_file
 
 __all__ = ["DRIVER_TYPES", "STANDARD_GRAVITY_MPS2", "ChannelSpec", "DriverTopic", "DaqMapping",
            "load_mapping", "mapping_from_dict", "load_metadata_file", "DEFAULT_BLOCK_S"]
@@ -124,35 +124,14 @@ class DaqMapping:
                 "stamps": {d.topic: d.stamp_source for d in self.drivers.values()}}
 
 
-def _read_doc(path: Path, what: str):
-    import yaml
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such {what} file") from None
-    except OSError as exc:
-        raise UserError(f"{path}: cannot read the {what} file ({exc.strerror})") from None
-    try:
-        if path.suffix.lower() == ".json":
-            return json.loads(text)
-        return yaml.safe_load(text)
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
-        raise UserError(f"{path}: not valid YAML{at} ({getattr(exc, 'problem', None) or exc})") from None
-
-
 def load_metadata_file(path) -> Metadata:
-    """The recording's metadata from a YAML or JSON file holding the contract's metadata document."""
-    path = Path(path)
-    return metadata_from_dict(_read_doc(path, "metadata"), str(path))
+    """The recording's metadata from a YAML or JSON file (the same reader as ``import``)."""
+    return metadata_from_file(path)
 
 
 def load_mapping(path, metadata: Metadata) -> DaqMapping:
     path = Path(path)
-    return mapping_from_dict(_read_doc(path, "mapping"), metadata, str(path))
+    return mapping_from_dict(load_yaml(path, "mapping file"), metadata, str(path))
 
 
 def _number(x) -> bool:

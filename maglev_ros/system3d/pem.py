@@ -35,6 +35,7 @@ from maglev_ros.errors import UserError
 from maglev_ros.progress import NULL, Progress
 from maglev_ros.system3d.irregularity import PROCESSES, RAILS, TrackIrregularity
 from maglev_ros.system3d.solve_coupled import CoupledSolver, HarmonicInput
+from maglev_ros.twin.pem import _blas_single_thread
 
 SPACINGS = ("linear", "log")
 WEIGHTS = ("bin", "midpoint")
@@ -176,12 +177,12 @@ class PseudoExcitation3D:
     def prepare(self) -> None:
         """One-time costs outside the time loop: pseudo-excitations, steady states."""
         self.harmonic = pseudo_inputs(self.solver, self.irregularity, self.grid, self.processes)
+        self.x0 = None
         if self.start == "steady":
             st = self.solver.step
-            self.x0 = np.stack([st.steady_state(self.harmonic.omega_rad_s, self.harmonic.w_hat[c])
-                                for c in range(self.solver.train.n_cars)])
-        else:
-            self.x0 = None
+            with _blas_single_thread():
+                self.x0 = np.stack([st.steady_state(self.harmonic.omega_rad_s, self.harmonic.w_hat[c])
+                                    for c in range(self.solver.train.n_cars)])
 
     def mean(self, n_steps: int, progress: Progress = NULL) -> tuple[np.ndarray, dict]:
         """Deterministic run (static forces moving over the girder): (n_out, n_t), run info."""

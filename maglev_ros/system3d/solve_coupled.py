@@ -46,11 +46,6 @@ from maglev_ros.twin.pem import _blas_single_thread
 COUPLINGS = ("separated", "monolithic")
 
 
-def _mm(a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """a @ x[c] for every car c (BLAS through matmul broadcasting)."""
-    return a @ x
-
-
 def _rt(r: np.ndarray, f: np.ndarray) -> np.ndarray:
     """sum over cars of R_c^T F_c."""
     return (r.transpose(0, 2, 1) @ f).sum(axis=0)
@@ -99,6 +94,39 @@ class RunRecord:
 
 
 @dataclass(frozen=True)
+class ModalVehicle:
+    """The vehicle step in the eigenvector coordinates of the balanced A: x = T z, T = S V
+    (S the balancing scale, V the eigenvectors), so Phi is diagonal (e^{lambda h}) and a step
+    costs O(n) per column instead of O(n^2). Falls back to T = I (dense Phi) when V is badly
+    conditioned (a near-defective A)."""
+    T: np.ndarray
+    Ti: np.ndarray
+    phi: np.ndarray                  # (n,) diagonal, or (n, n) dense
+    input_now: np.ndarray            # Ti G0
+    input_next: np.ndarray           # Ti G1
+    Hx: np.ndarray                   # H_x T (rail forces from the modal state)
+    condition: float
+
+    @classmethod
+    def of(cls, step: VehicleStep, Hx: np.ndarray, max_condition: float = 1e8) -> "ModalVehicle":
+        Ab, (scale, _) = scipy.linalg.matrix_balance(step.A, permute=False, separate=True)
+        lam, V = np.linalg.eig(Ab)
+        cond = float(np.linalg.cond(V))
+        if cond > max_condition:
+            eye = np.eye(step.A.shape[0])
+            return cls(eye, eye, step.transition, step.input_now, step.input_next, Hx, cond)
+        T = scale[:, None] * V
+        Ti = np.linalg.inv(V) / scale[None, :]
+        return cls(T, Ti, np.exp(lam * step.time_step_s), Ti @ step.input_now, Ti @ step.input_next, Hx @ T, cond)
+
+    def to_modal(self, x: np.ndarray) -> np.ndarray:
+        return (self.Ti @ x).astype(complex)
+
+    def transition_apply(self, z: np.ndarray) -> np.ndarray:
+        return self.phi[:, None] * z if self.phi.ndim == 1 else self.phi @ z
+
+
+@dataclass(frozen=True)
 class HarmonicInput:
     """Irregularity w_irr(t) = w_hat e^{i omega t} per column (complex; the PEM)."""
     omega_rad_s: np.ndarray          # (cols,)
@@ -126,6 +154,10 @@ class CoupledSolver:
             raise UserError(f"solver.coupling: expected one of {list(COUPLINGS)}, got {self.coupling!r}")
         if (self.dynamics is None) != (self.rails is None):
             raise UserError("CoupledSolver: give both the girder dynamics and its rail interpolation, or neither")
+        with _blas_single_thread():
+            self._setup()
+
+    def _setup(self) -> None:
         ss = self.state_space
         self.step = discretise(ss.A, ss.B, self.time_step_s, self.hold)
         data = ss.vehicle.data
@@ -137,7 +169,7 @@ class CoupledSolver:
         fo, lo = ss.outputs("force:"), ss.outputs("lateral_force:")
         self.Hx = pf @ ss.C[fo] + q @ ss.C[lo]
         self.Hw = pf @ ss.D[fo] + q @ ss.D[lo]
-        self.J = self.Hx @ self.step.input_next + self.Hw
+        self.basis = ModalVehicle.of(self.step, self.Hx)
         self.rail_static_n = -pf @ ss.static.magnet_force_n               # (2m,) static loads on the rails
         self.sides = [mg.side for mg in data.magnets]
         self.ng = 0 if self.dynamics is None else self.dynamics.n
@@ -197,22 +229,30 @@ class CoupledSolver:
             rows_c.append((o.car - 1, rc, rd))
             kinds.append("vehicle")
         self._veh_rows = rows_c
+        self._veh_rows_modal = [(c, rc @ self.basis.T, rd) for c, rc, rd in rows_c]
         self._gir_rows = np.array(rows_g).reshape(len(rows_g), self.ng)
         self._kinds = kinds
 
-    def _outputs_now(self, x, w, u, a) -> np.ndarray:
-        cols = x.shape[-1]
-        y = np.zeros((len(self.outputs), cols), dtype=np.result_type(x, w, u))
+    def _outputs_now(self, z, wi, u, ud, ua, R, Rs, real: bool) -> np.ndarray:
+        """Outputs at one instant: vehicle rows C z + D w with w = [R u; v R' u + R u'] + w_irr."""
+        m2 = 2 * self.n_mag
+        v = self.train.speed_mps
+        y = np.zeros((len(self.outputs), z.shape[-1]), complex)
         iv = ig = 0
         for k, kind in enumerate(self._kinds):
             if kind == "vehicle":
-                car, rc, rd = self._veh_rows[iv]
-                y[k] = rc @ x[car] + rd @ w[car]
+                car, rcz, rd = self._veh_rows_modal[iv]
+                val = rcz @ z[car]
+                if R is not None and np.any(R[car]):
+                    val = val + (rd[:m2] @ R[car] + v * (rd[m2:] @ Rs[car])) @ u + (rd[m2:] @ R[car]) @ ud
+                if wi is not None:
+                    val = val + rd @ wi[car]
+                y[k] = val
                 iv += 1
             else:
-                y[k] = self._gir_rows[ig] @ (a if kind == "girder_acceleration" else u)
+                y[k] = self._gir_rows[ig] @ (ua if kind == "girder_acceleration" else u)
                 ig += 1
-        return y
+        return y.real if real else y
 
     # ------------------------------------------------------------------ rails
     def rail_rows(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -248,102 +288,119 @@ class CoupledSolver:
         the girder (the mean run). ``harmonic``: complex PEM input; ``sampled(t)`` -> (n_cars, 4m,
         cols) real irregularity input (first-order hold). ``x0`` (n_cars, n_states, cols) initial
         vehicle state (default 0: static equilibrium on a perfect rail). ``record(n, t, y)`` gets
-        the outputs (n_out, cols) at every step n = 0..n_steps."""
+        the outputs (n_out, cols) at every step n = 0..n_steps (real unless the input is complex)."""
         if harmonic is not None and sampled is not None:
             raise UserError("CoupledSolver.run: give a harmonic or a sampled irregularity, not both")
         with _blas_single_thread():
             return self._run(n_steps, n_columns, static_load, harmonic, sampled, x0, record, progress)
 
     def _run(self, n_steps, n_columns, static_load, harmonic, sampled, x0, record, progress) -> RunRecord:
-        ss, st, tr = self.state_space, self.step, self.train
-        nc, ns, m4 = tr.n_cars, ss.n_states, 4 * self.n_mag
+        ss, st, tr, mb = self.state_space, self.step, self.train, self.basis
+        nc, m2 = tr.n_cars, 2 * self.n_mag
         h, v = self.time_step_s, tr.speed_mps
-        cplx = harmonic is not None or (x0 is not None and np.iscomplexobj(x0))
-        dt = complex if cplx else float
+        real = harmonic is None and not (x0 is not None and np.iscomplexobj(x0))
         cols = n_columns if harmonic is None else harmonic.omega_rad_s.size
-        x = np.zeros((nc, ns, cols), dt) if x0 is None else np.array(x0, dt)
         ng = self.ng
-        u = np.zeros((ng, cols), dt)
-        ud = np.zeros((ng, cols), dt)
-        ua = np.zeros((ng, cols), dt)
-        fstat = (self.rail_static_n if static_load else np.zeros(2 * self.n_mag))[:, None]
+        z = np.zeros((nc, ss.n_states, cols), complex) if x0 is None else mb.to_modal(np.asarray(x0))
+        u = np.zeros((ng, cols), complex)
+        ud = np.zeros_like(u)
+        ua = np.zeros_like(u)
+        fstat = (self.rail_static_n if static_load else np.zeros(m2))[:, None]
+        g0, g1 = mb.input_now, mb.input_next
         if harmonic is not None:
-            g_step = np.stack([st.harmonic_input(harmonic.omega_rad_s, harmonic.w_hat[c]) for c in range(nc)])
             om = harmonic.omega_rad_s
+            g_step = mb.to_modal(np.stack([st.harmonic_input(om, harmonic.w_hat[c]) for c in range(nc)]))
 
         def w_irr(t):
             if harmonic is not None:
                 return harmonic.w_hat * np.exp(1j * om * t)[None, None, :]
             if sampled is not None:
                 return np.asarray(sampled(t), float)
-            return np.zeros((nc, m4, cols))
+            return None
 
         wi = w_irr(0.0)
-        wg = np.zeros((nc, m4, cols), dt)            # girder part of the input at t_n
+        R0 = Rs0 = None
         if ng:
-            R, _ = self.rail_rows(0.0)
-            F = fstat[None] - _mm(self.Hx, x) - _mm(self.Hw, wi)
-            f = _rt(R, F)
+            R0, Rs0 = self.rail_rows(0.0)
+            F = fstat[None] - mb.Hx @ z
+            if wi is not None:
+                F = F - self.Hw @ wi
+            f = _rt(R0, F)
             if np.any(f):
                 ua = np.linalg.solve(self.dynamics.mass, f)
         iters = np.zeros(n_steps + 1, dtype=int)
         if record is not None:
-            record(0, 0.0, self._outputs_now(x, wg + wi, u, ua))
-        w_hold = wg if harmonic is not None else wg + wi     # input the hold interpolates from
+            record(0, 0.0, self._outputs_now(z, wi, u, ud, ua, R0, Rs0, real))
         progress.stage("time steps", n_steps)
         for n in range(n_steps):
             t0, t1 = n * h, (n + 1) * h
             wi1 = w_irr(t1)
-            p = _mm(st.transition, x) + _mm(st.input_now, w_hold)
+            p = mb.transition_apply(z)
             if harmonic is not None:
                 p += g_step * np.exp(1j * om * t0)[None, None, :]
-            else:
-                p += _mm(st.input_next, wi1)
+            elif wi is not None:
+                p += g0 @ wi + g1 @ wi1
             if ng:
-                R, Rs = self.rail_rows(t1)
-                E = np.concatenate([R, v * Rs + self.newmark.a1 * R], axis=1)      # (nc, 4m, ng)
-                cv = -(self.newmark.a1 * u + ud)
-                wfix = np.concatenate([np.zeros((nc, 2 * self.n_mag, cols), dt), (R @ cv)],
-                                      axis=1)
-                p += _mm(st.input_next, wfix)
-                e0 = wfix + wi1
-                hist = self.newmark.history_load(u, ud, ua)
-                rhs = (hist + _rt(R, fstat[None] - _mm(self.Hx, p)
-                                   - _mm(self.Hw, e0)))
-                if self.coupling == "monolithic" or not np.any(R):
-                    if np.any(R):
-                        kc = self.newmark.effective_stiffness + _rt(R, self.J @ E)
-                        u1 = scipy.linalg.lu_solve(scipy.linalg.lu_factor(kc), rhs)
-                    else:
-                        u1 = self.newmark.solve(rhs)
+                nm = self.newmark
+                R1, Rs1 = self.rail_rows(t1)
+                on0 = [bool(np.any(R0[c])) for c in range(nc)]
+                on1 = [bool(np.any(R1[c])) for c in range(nc)]
+                cv = -(nm.a1 * u + ud)
+                hist = nm.history_load(u, ud, ua)
+                const = hist.astype(complex)
+                couple = np.zeros((ng, ng), complex)
+                G1E = [None] * nc
+                for c in range(nc):
+                    if on0[c]:        # girder part of the input at t_n: G0 (W_u u + W_v u')
+                        g0wu = g0[:, :m2] @ R0[c] + v * (g0[:, m2:] @ Rs0[c])
+                        p[c] += g0wu @ u + (g0[:, m2:] @ R0[c]) @ ud
+                    if not on1[c]:
+                        continue
+                    E = np.concatenate([R1[c], v * Rs1[c] + nm.a1 * R1[c]])     # w_{n+1} = E u_{n+1} + [0; R c] + w_irr
+                    G1E[c] = g1 @ E
+                    p[c] += (g1[:, m2:] @ R1[c]) @ cv
+                    rhx = R1[c].T @ mb.Hx                                        # R^T H_x (girder <- vehicle state)
+                    rhw = R1[c].T @ self.Hw                                      # R^T H_w (girder <- rail input)
+                    const += R1[c].T @ fstat - rhx @ p[c] - (rhw[:, m2:] @ R1[c]) @ cv
+                    if wi1 is not None:
+                        const -= rhw @ wi1[c]
+                    couple += rhx @ G1E[c] + rhw @ E                             # R^T (H_x G1 + H_w) E
+                if not any(on1):
+                    u1 = nm.solve(hist)
+                    iters[n + 1] = 1
+                elif self.coupling == "monolithic":
+                    kc = nm.effective_stiffness + couple
+                    u1 = scipy.linalg.lu_solve(scipy.linalg.lu_factor(kc), const)
                     iters[n + 1] = 1
                 else:
-                    u1, iters[n + 1] = self._separated(u, hist, R, E, p, e0, fstat)
-                ud1, ua1 = self.newmark.update(u1, u, ud, ua)
-                wg = (E @ u1) + wfix
-                x = p + _mm(st.input_next, (E @ u1))
-                u, ud, ua = u1, ud1, ua1
+                    u1, iters[n + 1] = self._separated(u, const, couple)
+                if real:
+                    u1 = u1.real.astype(complex)
+                ud1, ua1 = nm.update(u1, u, ud, ua)
+                for c in range(nc):
+                    if on1[c]:
+                        p[c] += G1E[c] @ u1
+                z, u, ud, ua, R0, Rs0 = p, u1, ud1, ua1, R1, Rs1
             else:
-                x = p
+                z = p
                 iters[n + 1] = 1
-            w_hold = wg if harmonic is not None else wg + wi1
+            wi = wi1
             if record is not None:
-                record(n + 1, t1, self._outputs_now(x, wg + wi1, u, ua))
+                record(n + 1, t1, self._outputs_now(z, wi, u, ud, ua, R0, Rs0, real))
             progress.advance()
         return RunRecord(np.arange(n_steps + 1) * h, iters, self.coupling if ng else "rigid")
 
-    def _separated(self, u, hist, R, E, p, e0, fstat):
-        """Separated iteration: vehicle step with the girder iterate's rail motion, rail forces,
-        girder step with them, until the girder displacement stops changing."""
-        st = self.step
+    def _separated(self, u, const, couple):
+        """Separated iteration from u_{n+1} = u_n. The vehicle step with the rail motion of the
+        girder iterate u_j is x_j = p + G1 E u_j and the rail forces it gives load the girder by
+        R^T F_j = R^T F_p - R^T (H_x G1 + H_w) E u_j; both are linear in u_j, so an iteration is
+        u_{j+1} = K_eff^{-1} (const - couple u_j), the same iterates as stepping the vehicle
+        explicitly, without forming x_j. Stops when max|u_{j+1} - u_j| <= tolerance max|u_{j+1}|
+        in every column."""
+        nm = self.newmark
         u_j = u
         for j in range(1, self.max_iterations + 1):
-            du_rail = (E @ u_j)              # E u_j: input from the iterate
-            x_j = p + _mm(st.input_next, du_rail)
-            F = (fstat[None] - _mm(self.Hx, x_j)
-                 - _mm(self.Hw, du_rail + e0))
-            rhs = hist + _rt(R, F)
-            u_new = self.newmark.solve(rhs)
+            u_new = nm.solve(const - couple @ u_j)
             diff = np.max(np.abs(u_new - u_j), axis=0)
             size = np.max(np.abs(u_new), axis=0)
             u_j = u_new

@@ -73,13 +73,13 @@ PAPER_OUTPUTS = (
 
 
 def reduced_paper_solver(ss, coupling="separated", time_step_s=0.01, cutoff_hz=12.0, outputs=PAPER_OUTPUTS,
-                         front_start_m=-9.0, tolerance=1e-11, n_cars=1):
+                         front_start_m=-9.0, tolerance=1e-11, n_cars=1, vehicle_basis="eigen"):
     """Paper 001's vehicle (1 car) over the small girder, modal girder with few modes."""
     girder, rails = small_girder()
     dyn = girder_dynamics(girder, "modal", cutoff_hz)
     train = Train(n_cars, 16.1, SPEED_MPS, front_start_m, ss.magnet_x_m)
     return CoupledSolver(ss, train, time_step_s, dyn, rails, coupling=coupling, tolerance=tolerance,
-                         outputs=outputs)
+                         outputs=outputs, vehicle_basis=vehicle_basis)
 
 
 def small_vehicle_state_space(mass_kg: float = 3200.0):
@@ -90,4 +90,3 @@ def mirror_side(side: str) -> str:
     return "right" if side == "left" else "left"
 
 
-__all__ = ["np"]

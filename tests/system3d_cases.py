@@ -2,8 +2,6 @@
 on four magnets, a short three-span girder and a reduced paper 001 setting."""
 from __future__ import annotations
 
-import numpy as np
-
 from maglev_ros.system3d.girder import GirderSpec, assemble_girder
 from maglev_ros.system3d.girder_rails import RailInterpolation, RailLayout
 from maglev_ros.system3d.irregularity import load_irregularity

@@ -17,11 +17,9 @@ girder modes) for a fast check of the same case.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 
-from maglev_ros.errors import UserError
 
 NAME = "random-vibration"
 HELP = "random vibration of the 3D train-girder system (PEM: mean, SD, RMS, 3-sigma, PSD maps)"

@@ -15,7 +15,9 @@ E = [R; v R' + a1 R], and the vehicle step x_{n+1} = Phi x_n + G0 w_n + G1 w_{n+
 u_{n+1}: x_{n+1} = p + G1 E u_{n+1}. Then
 * ``separated`` (001's scheme): start from u_{n+1} = u_n; vehicle step with the rail motion of
   the current girder iterate, rail forces, girder step with them; repeat until
-  max|u^{j+1} - u^j| <= tolerance * max|u^{j+1}| in every column (iterations per step recorded);
+  max|u^{j+1} - u^j| <= tolerance * max|u^{j+1}| in every column (iterations per step recorded).
+  The vehicle step and the forces are linear in the iterate, so each iteration applies them as
+  one matrix on the girder coordinates (``_separated``): the same iterates without forming x_j;
 * ``monolithic``: the same discrete equations in one linear system per step, the vehicle states
   eliminated: (K_eff + sum_cars R^T (H_x G1 + H_w) E) u_{n+1} = rhs (LU per step);
 both converge to the same discrete solution, so they agree to the iteration tolerance.
@@ -24,7 +26,8 @@ Columns: every array carries a trailing column axis, so one run integrates many 
 once with the matrices of each step built and factorised once: the mean run (1 real column,
 static forces on), the PEM (complex columns, one per frequency and process, the irregularity's
 harmonic part integrated exactly by ``VehicleStep.harmonic_input``), Monte Carlo (real columns,
-sampled irregularity under the first-order hold).
+sampled irregularity under the first-order hold). The vehicle is stepped in the eigenvector
+basis of its balanced A (``ModalVehicle``: diagonal Phi).
 """
 from __future__ import annotations
 
@@ -44,12 +47,12 @@ from maglev_ros.system3d.vehicle_state_space import VehicleStateSpace3D
 from maglev_ros.twin.pem import _blas_single_thread
 
 COUPLINGS = ("separated", "monolithic")
+QUANTITIES = ("acceleration", "displacement", "current")
 
 
 def _rt(r: np.ndarray, f: np.ndarray) -> np.ndarray:
     """sum over cars of R_c^T F_c."""
     return (r.transpose(0, 2, 1) @ f).sum(axis=0)
-QUANTITIES = ("acceleration", "displacement", "current")
 
 
 @dataclass(frozen=True)
@@ -189,7 +192,7 @@ class CoupledSolver:
         veh = ss.vehicle
         acc = ss.outputs("acc:")
         nc = self.train.n_cars
-        rows_c, rows_d, rows_g, kinds = [], [], [], []
+        rows_c, rows_g, kinds = [], [], []
         for o in self.outputs:
             if o.quantity not in QUANTITIES:
                 raise UserError(f"outputs.{o.name}.quantity: expected one of {list(QUANTITIES)}, got {o.quantity!r}")

@@ -144,6 +144,32 @@ def test_paper001_second_car_on_the_girder_from_2_39_to_13_05_s():
     assert not np.any(R[1])
 
 
+def test_rail_rows_follow_the_moving_magnets(paper_ss):
+    """The slope rows R' times v are the time derivative of the rail rows R seen by magnets moving
+    at v (central difference in time), and each magnet reads the rail of its side."""
+    sol = reduced_paper_solver(paper_ss, "monolithic", front_start_m=40.0, cutoff_hz=80.0)
+    t, dt = 0.3, 1e-5
+    R, Rs = sol.rail_rows(t)
+    Rp, _ = sol.rail_rows(t + dt)
+    Rm, _ = sol.rail_rows(t - dt)
+    assert np.any(R) and np.any(Rs)
+    np.testing.assert_allclose(SPEED_MPS * Rs, (Rp - Rm) / (2 * dt), atol=1e-6 * np.abs(SPEED_MPS * Rs).max())
+    # each magnet reads its own rail: for a mirror pair at the same x, z_left - z_right = 2 b theta_x
+    # and z_left + z_right = 2 w of the shear centre (rows of the section, independent of the sides)
+    m = sol.n_mag
+    mags = paper_ss.vehicle.data.magnets
+    x = sol.train.magnet_positions_m(t)[0]
+    pairs = [(i, j) for i in range(m) for j in range(m) if mags[i].side == "left" and mags[j].side == "right"
+             and mags[i].point_m[0] == mags[j].point_m[0]]
+    assert len(pairs) == m // 2
+    basis = sol.dynamics.basis
+    for i, j in pairs:
+        sec = sol.rails.section_rows([x[i]])
+        np.testing.assert_allclose(R[0, i] - R[0, j], 2 * 1.0 * (sec["rx"] @ basis)[0], atol=1e-12)
+        np.testing.assert_allclose(R[0, i] + R[0, j], 2 * (sec["w"] @ basis)[0], atol=1e-12)
+        np.testing.assert_allclose(R[0, m + i], R[0, m + j], atol=1e-12)        # lateral: same v - z_r theta
+
+
 def test_errors_are_one_line(paper_ss):
     g, rails = _single_span()
     train = Train(1, 16.1, SPEED_MPS, -10.0, paper_ss.magnet_x_m)

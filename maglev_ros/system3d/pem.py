@@ -27,7 +27,7 @@ step increments, steady states) are in ``prepare``; ``run`` is the time loop.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -175,8 +175,10 @@ class PseudoExcitation3D:
         self.x0: np.ndarray | None = None
 
     def prepare(self) -> None:
-        """One-time costs outside the time loop: pseudo-excitations, steady states."""
-        self.harmonic = pseudo_inputs(self.solver, self.irregularity, self.grid, self.processes)
+        """One-time costs outside the time loop: pseudo-excitations, their exact step increments,
+        steady states."""
+        h = pseudo_inputs(self.solver, self.irregularity, self.grid, self.processes)
+        self.harmonic = replace(h, increment=self.solver.harmonic_increments(h))
         self.x0 = None
         if self.start == "steady":
             st = self.solver.step

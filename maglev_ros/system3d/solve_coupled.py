@@ -131,9 +131,12 @@ class ModalVehicle:
 
 @dataclass(frozen=True)
 class HarmonicInput:
-    """Irregularity w_irr(t) = w_hat e^{i omega t} per column (complex; the PEM)."""
+    """Irregularity w_irr(t) = w_hat e^{i omega t} per column (complex; the PEM). ``increment``:
+    the exact one-step vehicle increments (``CoupledSolver.harmonic_increments``), computed in the
+    run when missing."""
     omega_rad_s: np.ndarray          # (cols,)
     w_hat: np.ndarray                # (n_cars, 4m, cols)
+    increment: np.ndarray | None = None   # (n_cars, n_states, cols), vehicle eigen coordinates
 
 
 @dataclass
@@ -300,8 +303,15 @@ class CoupledSolver:
         with _blas_single_thread():
             return self._run(n_steps, n_columns, static_load, harmonic, sampled, x0, record, progress)
 
+    def harmonic_increments(self, harmonic: HarmonicInput) -> np.ndarray:
+        """Per car, the exact step increment of the harmonic input in the solver's vehicle basis (a
+        one-time cost: one balanced solve per frequency)."""
+        with _blas_single_thread():
+            return self.basis.to_modal(np.stack([self.step.harmonic_input(harmonic.omega_rad_s, harmonic.w_hat[c])
+                                                 for c in range(self.train.n_cars)]))
+
     def _run(self, n_steps, n_columns, static_load, harmonic, sampled, x0, record, progress) -> RunRecord:
-        ss, st, tr, mb = self.state_space, self.step, self.train, self.basis
+        ss, tr, mb = self.state_space, self.train, self.basis
         nc, m2 = tr.n_cars, 2 * self.n_mag
         h, v = self.time_step_s, tr.speed_mps
         real = harmonic is None and not (x0 is not None and np.iscomplexobj(x0))
@@ -315,7 +325,7 @@ class CoupledSolver:
         g0, g1 = mb.input_now, mb.input_next
         if harmonic is not None:
             om = harmonic.omega_rad_s
-            g_step = mb.to_modal(np.stack([st.harmonic_input(om, harmonic.w_hat[c]) for c in range(nc)]))
+            g_step = harmonic.increment if harmonic.increment is not None else self.harmonic_increments(harmonic)
 
         def w_irr(t):
             if harmonic is not None:

@@ -40,7 +40,10 @@ def test_quick_run_writes_the_document_and_plots(quick_run):
     np.testing.assert_allclose(rms ** 2, np.array(ser["mean"]) ** 2 + np.array(ser["sd"]) ** 2, rtol=1e-9, atol=1e-30)
     psd = np.array(ser["psd"])
     assert psd.shape == (len(doc["psd_time_s"]), doc["frequency_grid"]["n"])
-    assert doc["runs"]["pem_run"]["iterations_max"] >= 2                     # separated iteration ran
+    run = doc["runs"]["pem_run"]
+    assert run["iterations_max"] >= 2                                        # separated iteration ran
+    sc = doc["scenario"]
+    assert len(run["iterations_per_step"]) == run["steps"] == round(sc["duration_s"] / sc["time_step_s"])
     for png in ("rms_envelopes.png", "psd_maps.png"):
         img = matplotlib.image.imread(quick_run / png)
         assert img.shape[0] > 200 and img.shape[1] > 200

@@ -93,7 +93,8 @@ class RunRecord:
         it = self.iterations[1:]
         return {"coupling": self.coupling, "steps": int(it.size),
                 "iterations_max": int(it.max()) if it.size else 0,
-                "iterations_mean": float(it.mean()) if it.size else 0.0}
+                "iterations_mean": float(it.mean()) if it.size else 0.0,
+                "iterations_per_step": it.tolist()}
 
 
 @dataclass(frozen=True)

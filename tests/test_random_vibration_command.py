@@ -69,6 +69,18 @@ def test_bad_scenario_key_is_one_line(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_unknown_solver_key_is_one_line(tmp_path, capsys):
+    doc = yaml.safe_load((CONFIG_DIR / "paper001.yaml").read_text())
+    for k in ("vehicle", "girder", "irregularity"):
+        doc[k] = str(CONFIG_DIR / doc[k])
+    doc["solver"]["couplng"] = "monolithic"
+    p = tmp_path / "typo.yaml"
+    p.write_text(yaml.safe_dump(doc))
+    assert main(["random-vibration", str(p), "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "solver.couplng" in err[0]
+
+
 def test_every_number_of_the_paper_scenario_is_tagged():
     raw = yaml.safe_load((CONFIG_DIR / "paper001.yaml").read_text())
     bare = []

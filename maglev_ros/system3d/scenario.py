@@ -27,6 +27,12 @@ FORMAT = "maglev-random-vibration-scenario"
 BUILTIN = {"paper001": CONFIG_DIR / "paper001.yaml"}
 _TOP = ("format", "version", "name", "description", "vehicle", "girder", "irregularity", "train", "solver",
         "pem", "outputs", "quick")
+_SECTION_KEYS = {
+    "train": ("cars", "car_length_m", "speed_mps", "front_start_m"),
+    "solver": ("time_step_s", "duration_s", "girder_model", "mode_cutoff_hz", "coupling", "tolerance", "hold"),
+    "pem": ("frequency_grid", "start", "psd_time_step_s", "processes"),
+    "pem.frequency_grid": ("min_rad_per_m", "max_rad_per_m", "n", "spacing", "weights"),
+}
 _OUT_KEYS = ("name", "quantity", "direction", "car", "body", "point_m", "loop", "girder_x_m", "rail")
 
 
@@ -108,6 +114,12 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     so = require(d, "solver", str(path))
     pe = require(d, "pem", str(path))
     grid = require(pe, "frequency_grid", f"{path}: pem")
+    for sec, node in (("train", tr), ("solver", so), ("pem", pe), ("pem.frequency_grid", grid)):
+        if not isinstance(node, dict):
+            raise UserError(f"{path}: {sec}: expected a mapping, got {type(node).__name__}")
+        bad = [k for k in node if k not in _SECTION_KEYS[sec]]
+        if bad:
+            raise UserError(f"{path}: {sec}.{bad[0]}: unknown key (expected one of {list(_SECTION_KEYS[sec])})")
     w = f"{path}: train"
     ws, wp, wg = f"{path}: solver", f"{path}: pem", f"{path}: pem.frequency_grid"
     outs = []

@@ -8,17 +8,32 @@ report or a test can show every assumption.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
 
 import yaml
 
 from maglev_ros.errors import UserError
 
 _TAGS = ("assumed", "source")
+#: Keys a value node may carry: the value, its unit and one tag.
+VALUE_KEYS = frozenset(("value", "unit") + _TAGS)
 
 
 def is_tagged(node: Any) -> bool:
-    return isinstance(node, dict) and "value" in node and any(t in node for t in _TAGS)
+    return isinstance(node, Mapping) and "value" in node and any(t in node for t in _TAGS)
+
+
+def is_value_node(node: Any) -> bool:
+    """``{value: X, [unit], [assumed | source]}``: a value written with its metadata only."""
+    return isinstance(node, Mapping) and "value" in node and set(node) <= VALUE_KEYS
+
+
+def tag_text(node: Any) -> str | None:
+    """``"assumed: why"`` / ``"source: where"`` of a tagged node, None for anything else."""
+    if not is_tagged(node):
+        return None
+    tag = "assumed" if "assumed" in node else "source"
+    return f"{tag}: {node[tag]}"
 
 
 def plain(node: Any, where: str = "") -> Any:

@@ -21,6 +21,7 @@ from typing import Any, Mapping
 import yaml
 
 from maglev_ros.errors import UserError
+from maglev_ros.system3d.scenario_values import is_value_node, tag_text
 
 FORMAT = "maglev-vehicle"
 DOF_NAMES = ("x", "y", "z", "rx", "ry", "rz")
@@ -33,7 +34,6 @@ SIDES = ("left", "right")
 ROLES = ("levitation", "guidance")
 ABSENT_DOF_RULES = ("held", "quasi_static")
 PASSIVE_LATERAL = ("none", "fringing")
-_TAGS = {"value", "unit", "assumed", "source"}
 
 
 @dataclass(frozen=True)
@@ -126,10 +126,10 @@ class _Reader:
 
     def untag(self, node: Any, where: str) -> Any:
         """``{value: v, assumed|source: ..., unit: ...}`` -> v, keeping the tag."""
-        if isinstance(node, Mapping) and "value" in node and set(node) <= _TAGS:
-            for tag in ("assumed", "source"):
-                if tag in node:
-                    self.provenance[where] = f"{tag}: {node[tag]}"
+        if is_value_node(node):
+            text = tag_text(node)
+            if text is not None:
+                self.provenance[where] = text
             return node["value"]
         return node
 

@@ -9,7 +9,6 @@ import pytest
 import yaml
 
 from maglev_ros.cli import main
-from maglev_ros.system3d.scenario_values import is_tagged
 from maglev_ros.system3d.vehicle_data import CONFIG_DIR
 
 
@@ -79,25 +78,3 @@ def test_unknown_solver_key_is_one_line(tmp_path, capsys):
     assert main(["random-vibration", str(p), "--out", str(tmp_path / "o"), "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "solver.couplng" in err[0]
-
-
-def test_every_number_of_the_paper_scenario_is_tagged():
-    raw = yaml.safe_load((CONFIG_DIR / "paper001.yaml").read_text())
-    bare = []
-
-    def walk(node, where):
-        if is_tagged(node):
-            assert str(node.get("assumed", node.get("source"))).strip(), where
-            return
-        if isinstance(node, dict):
-            for k, v in node.items():
-                if k != "version":
-                    walk(v, f"{where}.{k}")
-        elif isinstance(node, list):
-            for i, v in enumerate(node):
-                walk(v, f"{where}[{i}]")
-        elif isinstance(node, (int, float)) and not isinstance(node, bool):
-            bare.append(where)
-
-    walk(raw, "paper001")
-    assert not bare, f"untagged numbers: {bare}"

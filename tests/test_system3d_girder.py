@@ -8,14 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from maglev_ros.errors import UserError
 from maglev_ros.system3d.girder import (Damping, GirderSpec, Support, assemble_girder,
                                         load_girder)
 from maglev_ros.system3d.girder_element import GirderSection
 from maglev_ros.system3d.girder_rails import RailInterpolation, RailLayout
-from maglev_ros.system3d.scenario_values import is_tagged, load_yaml
+from maglev_ros.system3d.scenario_values import load_yaml
 from system3d_refs import continuous_beam_freqs_hz, pynite_girder, pynite_nodal
 
 CONFIG = Path(__file__).resolve().parents[1] / "maglev_ros" / "config" / "system3d"
@@ -208,26 +207,3 @@ def test_paper001_girder_frequencies_sit_at_the_paper_psd_peaks(paper):
     for f in (md.freq_hz[vert[0]], md.freq_hz[seen[1]]):
         w = 2 * np.pi * f
         assert g.rayleigh_alpha_per_s / (2 * w) + g.rayleigh_beta_s * w / 2 == pytest.approx(0.03, rel=0.03)
-
-
-@pytest.mark.parametrize("name", ["paper001_girder.yaml", "paper001_irregularity.yaml"])
-def test_paper001_scenarios_tag_every_number(name):
-    """Every number in a paper 001 scenario is tagged 'assumed' (with a reason) or 'source'."""
-    raw = yaml.safe_load((CONFIG / name).read_text())
-    bare = []
-
-    def walk(node, where):
-        if is_tagged(node):
-            assert str(node.get("assumed", node.get("source"))).strip(), where
-            return
-        if isinstance(node, dict):
-            for k, v in node.items():
-                walk(v, f"{where}.{k}")
-        elif isinstance(node, list):
-            for i, v in enumerate(node):
-                walk(v, f"{where}[{i}]")
-        elif isinstance(node, (int, float)) and not isinstance(node, bool) and not where.endswith(".at_support"):
-            bare.append(where)   # at_support is an index into the span list, not a physical value
-
-    walk(raw, name)
-    assert not bare, f"untagged numbers: {bare}"

@@ -57,7 +57,11 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
             client.close()
         return
     n = workers or cores()
-    cfg = {"distributed.scheduler.allowed-failures": allowed_failures} if allowed_failures is not None else {}
+    # a worker holds only the task it runs (saturation 1.0: long tasks gain nothing from a queue
+    # on the worker), so a worker's death counts against that task alone
+    cfg = {"distributed.scheduler.worker-saturation": 1.0}
+    if allowed_failures is not None:
+        cfg["distributed.scheduler.allowed-failures"] = allowed_failures
     with dask.config.set(cfg):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                env=dict(ONE_THREAD_ENV))

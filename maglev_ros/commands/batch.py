@@ -40,6 +40,12 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    try:
+        import distributed  # noqa: F401  (checked here: a colcon install may lack them)
+        import pyarrow  # noqa: F401
+    except ImportError as exc:
+        raise UserError(f"batch needs dask.distributed and pyarrow ({exc}); install them with "
+                        "pip install 'dask[distributed]' pyarrow") from None
     from maglev_ros.batch.engine import dask_client, prepare_out, run_jobs
     from maglev_ros.batch.jobs import VERBS
     from maglev_ros.batch.manifest import jobs_from_glob, jobs_from_manifest

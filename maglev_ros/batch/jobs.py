@@ -233,7 +233,7 @@ class JobResult:
     trend: dict = field(default_factory=dict)
     files: list = field(default_factory=list)    # outputs, relative to the job directory
     log_tail: str = ""
-    blas_threads: list = field(default_factory=list)   # threadpoolctl's num_threads per library
+X
     spec: dict = field(default_factory=dict)
     schema: str = SCHEMA
 
@@ -281,15 +281,27 @@ def recording_facts(bag: str) -> tuple[str | None, float | None]:
 
 
 # ------------------------------------------------------------------------------ the worker
-def _limit_threads() -> list:
-    """BLAS/OpenMP at one thread in this worker (processes give the parallelism); returns what
-    threadpoolctl sees, for the record."""
+def _limit_threads() -> None:
+    """BLAS/OpenMP at one thread in this worker (processes give the parallelism; libraries loaded
+    later start from the nanny's OMP_NUM_THREADS=1 environment)."""
     try:
-        from threadpoolctl import threadpool_info, threadpool_limits
+        from threadpoolctl import threadpool_limits
     except ImportError:
-        return []
+        return
     threadpool_limits(1)
-    return sorted({(i.get("internal_api", "?"), i.get("num_threads")) for i in threadpool_info()})
+
+
+def _threads_seen() -> list:
+    """[[library, threads], ...] after the job: threadpoolctl's pools, and torch's when loaded."""
+    seen = set()
+    try:
+        from threadpoolctl import threadpool_info
+        seen = {(i.get("internal_api", "?"), i.get("num_threads")) for i in threadpool_info()}
+    except ImportError:
+        pass
+    if "torch" in sys.modules:
+        seen.add(("torch", sys.modules["torch"].get_num_threads()))
+    return [list(x) for x in sorted(seen)]
 
 
 def _test_kill(out: Path, name: str) -> None:
@@ -317,7 +329,7 @@ def run_job(job: Job, out: str) -> JobResult:
     t0 = time.perf_counter()
     res = JobResult(job.name, job.verb, job.bag, "failed", ambient=job.ambient,
                     worker=f"{socket.gethostname()}:{os.getpid()}", spec=_jsonable(job.spec()))
-    res.blas_threads = [list(x) for x in _limit_threads()]
+    _limit_threads()
     verb = VERBS[job.verb]
     work = out / WORK_DIR / f"{job.name}.{secrets.token_hex(4)}"
     work.mkdir(parents=True)
@@ -338,6 +350,7 @@ def run_job(job: Job, out: str) -> JobResult:
             except Exception as exc:       # a bug in the verb: its traceback goes to the log
                 res.error = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}".rstrip(": ")
                 traceback.print_exc()
+        res.blas_threads = _threads_seen()
         res.run_kind, stamp = recording_facts(job.bag)
         res.time_unix_s, res.time_source = ((job.time_unix_s, "manifest") if job.time_unix_s is not None
                                             else (stamp, "first header stamp") if stamp is not None else (None, ""))

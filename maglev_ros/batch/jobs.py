@@ -233,7 +233,7 @@ class JobResult:
     trend: dict = field(default_factory=dict)
     files: list = field(default_factory=list)    # outputs, relative to the job directory
     log_tail: str = ""
-X
+    blas_threads: list = field(default_factory=list)   # [library, threads] seen after the job
     spec: dict = field(default_factory=dict)
     schema: str = SCHEMA
 

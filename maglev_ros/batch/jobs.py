@@ -119,15 +119,16 @@ def _modes_summary(d: Path):
 
 def _irregularity_summary(d: Path):
     doc = _load(d, "irregularity.json") or {}
-    m, series = {}, {}
-    for b in doc.get("band_rms", []):
-        if b.get("available"):
-            m[f"rms_{b['band']}_m"] = b["rms_m"]
-            series[b["band"]] = b["rms_m"] * 1e3
     prof = doc.get("profile") or {}
-    m["min_wavelength_m"] = prof.get("min_wavelength_m")
-    m["max_wavelength_m"] = prof.get("max_wavelength_m")
-    return m, {"EN 13848 band RMS [mm]": {"kind": "values", "series": series}}
+    # the profile's RMS over its valid band (what the verb prints), then EN 13848's bands where covered
+    m = {"rms_valid_band_m": prof.get("rms_m"), "min_wavelength_m": prof.get("min_wavelength_m"),
+         "max_wavelength_m": prof.get("max_wavelength_m")}
+    series = {"valid band": None if prof.get("rms_m") is None else prof["rms_m"] * 1e3}
+    for b in doc.get("band_rms", []):
+        m[f"rms_{b['band']}_m"] = b.get("rms_m") if b.get("available") else None
+        if b.get("available"):
+            series[f"EN 13848 {b['band']}"] = b["rms_m"] * 1e3
+    return m, {"irregularity RMS [mm]": {"kind": "values", "series": series}}
 
 
 def _update_summary(d: Path):

@@ -106,3 +106,19 @@ def test_failed_job_leaves_no_directory_and_says_why(line, tmp_path):
     assert ok.status == "done" and (out / "p1" / "info.json").is_file()
     assert json.loads((out / "p1" / "job.json").read_text())["metrics"]["message_count"] == ok.metrics["message_count"]
     assert ok.time_unix_s == pytest.approx(T0_S + DAY_S, abs=1e-6)
+
+
+def test_done_job_is_returned_and_a_changed_one_replaces_its_directory(line, tmp_path):
+    d, bags = line
+    out = tmp_path / "out"
+    job = Job("p1", "info", str(bags["p1"]))
+    first = run_job(job, str(out))
+    mtime = (out / "p1" / "job.json").stat().st_mtime_ns
+    again = run_job(job, str(out))                   # a retry of a finished job: nothing rerun
+    assert again.status == "done" and (out / "p1" / "job.json").stat().st_mtime_ns == mtime
+    assert again.worker == first.worker
+    changed = run_job(Job("p1", "info", str(bags["p1"]), args=("--no-check",)), str(out))
+    doc = json.loads((out / "p1" / "job.json").read_text())
+    assert changed.status == "done" and doc["argv"][-1] == "--no-check"
+    assert json.loads((out / "p1" / "info.json").read_text())["checked"] is False
+    assert sorted(p.name for p in out.iterdir()) == [".work", "p1"] and not any((out / ".work").iterdir())

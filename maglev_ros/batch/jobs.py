@@ -158,6 +158,11 @@ def _diagnose_summary(d: Path):
                "found physics": {"kind": "events", "series": {f: 1.0 for f in found}}}
 
 
+def _no_summary(d: Path):
+    """A verb with no figures for the table (its outputs are still linked)."""
+    return {}, {}
+
+
 def _with_ambient(j: Job) -> list:
     return ["--ambient", j.ambient] if j.ambient else []
 

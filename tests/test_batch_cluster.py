@@ -1,5 +1,6 @@
 """``maglev-ros batch --scheduler``: a scheduler and two workers started by the ``dask`` CLIs on
-loopback (as on separate machines) give the outputs and the summary of the local cluster."""
+loopback (as on separate machines) give the outputs and the summary of the local cluster, and
+those of a direct run of the verb."""
 from __future__ import annotations
 
 import csv
@@ -50,6 +51,10 @@ def test_scheduler_and_cli_workers_give_the_local_outputs(archive, tmp_path):
         b = json.loads((remote / f"amb{k}" / "modes.json").read_text())
         assert b == a and len(a["modes"]) >= 1
         assert (remote / f"amb{k}" / "modes.png").stat().st_size > 10000
+    # and each is the direct run's
+    direct = tmp_path / "direct.json"
+    assert main(["modes", str(archive / "amb0.mcap"), "--json", str(direct)]) == 0
+    assert json.loads(direct.read_text()) == json.loads((local / "amb0" / "modes.json").read_text())
     # the jobs ran in the CLI workers' processes, not in this one
     import os
     assert all(not j["worker"].endswith(f":{os.getpid()}") for j in jobs)

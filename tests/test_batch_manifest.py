@@ -122,3 +122,20 @@ def test_done_job_is_returned_and_a_changed_one_replaces_its_directory(line, tmp
     assert changed.status == "done" and doc["argv"][-1] == "--no-check"
     assert json.loads((out / "p1" / "info.json").read_text())["checked"] is False
     assert sorted(p.name for p in out.iterdir()) == [".work", "p1"] and not any((out / ".work").iterdir())
+
+
+def test_modes_job_equals_the_direct_run(tmp_path):
+    from modal_data import guideway_model, simulate_ambient
+    model = guideway_model(None)
+    fs = 200.0
+    y = simulate_ambient(model, fs, 8.0, noise_frac=0.05, seed=1)[:, :6]
+    topics = {GUIDEWAY_ACCEL: (model.channels[:6], ("m/s^2",) * 6, fs, y)}
+    bag = write_contract_bag(tmp_path / "amb.mcap", make_metadata(topics, kind="ambient"), topics)
+    res = run_job(Job("amb", "modes", str(bag)), str(tmp_path / "out"))
+    assert res.status == "done", res.error
+    direct = tmp_path / "direct.json"
+    assert main(["modes", str(bag), "--json", str(direct)]) == 0
+    doc = json.loads(direct.read_text())
+    assert json.loads((tmp_path / "out" / "amb" / "modes.json").read_text()) == doc
+    assert res.metrics["n_modes"] == len(doc["modes"]) >= 1
+    assert res.trend["mode frequency [Hz]"]["series"]["modes"] == [m["frequency_hz"] for m in doc["modes"]]

@@ -40,12 +40,11 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    try:
-        import distributed  # noqa: F401  (checked here: a colcon install may lack them)
-        import pyarrow  # noqa: F401
-    except ImportError as exc:
-        raise UserError(f"batch needs dask.distributed and pyarrow ({exc}); install them with "
-                        "pip install 'dask[distributed]' pyarrow") from None
+    import importlib.util
+    missing = [m for m in ("distributed", "pyarrow") if importlib.util.find_spec(m) is None]
+    if missing:          # checked here: a colcon install may lack them
+        raise UserError(f"batch needs dask.distributed and pyarrow ({', '.join(missing)} not installed); "
+                        "install them with pip install 'dask[distributed]' pyarrow")
     from maglev_ros.batch.engine import dask_client, prepare_out, run_jobs
     from maglev_ros.batch.jobs import VERBS
     from maglev_ros.batch.manifest import jobs_from_glob, jobs_from_manifest

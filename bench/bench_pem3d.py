@@ -47,7 +47,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from maglev_ros.system3d.irregularity import PROCESSES, RAILS, TrackIrregularity  # noqa: E402
+from maglev_ros.system3d.irregularity import TrackIrregularity  # noqa: E402
 from maglev_ros.system3d.pem import FrequencyGrid, PseudoExcitation3D, sampled_rails  # noqa: E402
 from maglev_ros.system3d.solve_coupled import CoupledSolver, HarmonicInput  # noqa: E402
 

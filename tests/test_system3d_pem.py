@@ -97,7 +97,9 @@ def test_symmetric_vehicle_under_elevation_has_no_lateral_roll_yaw(paper_ss, irr
         assert np.abs(stat[0] - stat[1]).max() <= 1e-12 * vertical
         assert np.abs(stat[2:6]).max() <= 1e-12 * vertical
     assert np.abs(res.mean[7] + res.mean[8]).max() <= 1e-12 * vertical     # mirror pair: opposite y
-    assert res.sd[7].max() > 1e-3 * vertical                                # while each bogie moves
+    # while each bogie moves (a scenario value, not the symmetry bound: 3.5e-4 with the soft
+    # lateral air springs, 1e-3 with the former stiff tables; the pair cancels to <= 1e-12 above)
+    assert res.sd[7].max() > 1e-4 * vertical
 
 
 def _spectral_samples(irr, grid, x_m, n_samples, rng):

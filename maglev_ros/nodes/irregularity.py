@@ -93,8 +93,8 @@ class IrregularityNode(Node):
             subscription(self, SensorBlock, topic, self._on_block(topic, key))
         # one worker: the live profile (of a copy of the profiler) and the recording's profile
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irregularity")
-        self.live = None             # (future, epoch) of the live profile being computed
-        self.final = None            # (future, epoch) of the recording's profile being computed
+        self.live = None             # (future, epoch, stamp_ns) of the live profile being computed
+        self.final = None            # (future, stamp_ns) of the recording's profile being computed
         self.epoch = 0               # a new recording (metadata) or its end: older results are dropped
         self.n_taken = 0             # blocks fed to the profiler (a copy is made only when it grew)
         self.n_copied = -1
@@ -187,7 +187,17 @@ class IrregularityNode(Node):
         self.gate.new_stream()      # the next recording sets its own layout
 
     def busy(self) -> bool:
+        """The recording's profile is not out yet (the lifecycle asks every 0.2 s: it is published
+        here as soon as the worker has it, not a publish period later)."""
+        self._flush_final()
         return self.final is not None
+
+    def _flush_final(self) -> None:
+        if self.final is not None and self.final[0].done():
+            (fut, stamp_ns), self.final = self.final, None
+            res = self._outcome(fut, "the recording's profile")
+            if res is not None:
+                self._send(res, stamp_ns)
 
     def _recording_profile(self, metadata, kept, profiler):
         from maglev_ros.irregularity.recording import recording_profile
@@ -204,11 +214,7 @@ class IrregularityNode(Node):
     # ------------------------------------------------------------------ output
     def _publish(self) -> None:
         """Timer: publish what the worker has finished; start the next live profile when due."""
-        if self.final is not None and self.final[0].done():
-            (fut, stamp_ns), self.final = self.final, None
-            res = self._outcome(fut, "the recording's profile")
-            if res is not None:
-                self._send(res, stamp_ns)
+        self._flush_final()
         if self.live is not None and self.live[0].done():
             (fut, epoch, stamp_ns), self.live = self.live, None
             res = self._outcome(fut, "the growing profile")

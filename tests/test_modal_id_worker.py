@@ -31,10 +31,10 @@ SCRIPT = textwrap.dedent('''
         done.append(job["n"])
         return Up()
     node.core.identify = identify
-    node._submit(("window", {"n": 0, "window_s": 1.0}, 0, node.epoch))
+    node._submit(("window", {"n": 0, "window_s": 1.0}, 0))
     assert started.wait(60)                      # the worker is on window 0 now
     for n in range(1, 5):                        # four more complete while it is busy
-        node._submit(("window", {"n": n, "window_s": 1.0}, n, node.epoch))
+        node._submit(("window", {"n": n, "window_s": 1.0}, n))
     queued = node.n_jobs
     release.set()
     deadline = time.monotonic() + 60

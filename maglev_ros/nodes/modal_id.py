@@ -122,11 +122,12 @@ class ModalIdNode(Node):
                                             name=f"{self.get_fully_qualified_name()} recording",
                                             max_bytes=max_mb * 1e6)
         self.lock = threading.Lock()               # the collector: fed by callbacks, emptied at an end
-        # the worker's queue, in order: ("window", job, stamp_ns, epoch) | ("recording", bag, None, None)
+        # the worker's queue, in order: ("window", job, stamp_ns) | ("recording", bag, None); a
+        # recording's windows come before its whole-recording job and before the next one's windows,
+        # and a job carries its own tracker: what a recording's windows give stays that recording's
         self.jobs: deque = deque()
         self.wake = threading.Condition(self.lock)
         self.n_jobs = 0                            # queued or running, not yet published
-        self.epoch = 0                             # a reset (new recording): older windows are dropped
         self.windows_skipped = 0
         subscription(self, String, TOPIC_METADATA, self._on_metadata)
         subscription(self, SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block)
@@ -177,7 +178,7 @@ class ModalIdNode(Node):
             self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} block at {block.stamp_s:.3f} s: {exc}")
             return
         for job in windows:
-            self._submit(("window", job, block.stamp_ns, self.epoch))
+            self._submit(("window", job, block.stamp_ns))
 
     def _submit(self, item) -> None:
         with self.wake:
@@ -191,14 +192,12 @@ class ModalIdNode(Node):
             self.n_jobs += 1
             self.wake.notify()
 
-    def _identify_window(self, job, stamp_ns: int, epoch: int) -> None:
+    def _identify_window(self, job, stamp_ns: int) -> None:
         try:
             up = self.core.identify(job)
         except Exception as exc:  # noqa: BLE001  (a window the SSI refuses: report, keep running)
             self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} window ending {stamp_ns * 1e-9:.3f} s: {exc}")
             return
-        if epoch != self.epoch:
-            return                      # of a recording that has ended meanwhile
         if up.modes or up.events:       # nothing confirmed yet (a mode gets its id when seen twice)
             self.pub.publish(self._message(up, stamp_ns, job["window_s"]))
 
@@ -268,11 +267,10 @@ class ModalIdNode(Node):
         self._reset()                    # the next recording is tracked afresh
         if not self.recording_modes or not bag.has(TOPIC_GUIDEWAY_ACCEL):
             return
-        self._submit(("recording", bag, None, None))     # after the recording's last windows
+        self._submit(("recording", bag, None))     # after the recording's last windows
 
     def _reset(self) -> None:
         self.core.reset()
-        self.epoch += 1
 
     def busy(self) -> bool:
         return self.n_jobs > 0 or self.collector.waiting
@@ -282,10 +280,10 @@ class ModalIdNode(Node):
             with self.wake:
                 while not self.jobs:
                     self.wake.wait()
-                kind, what, stamp_ns, epoch = self.jobs.popleft()
+                kind, what, stamp_ns = self.jobs.popleft()
             try:
                 if kind == "window":
-                    self._identify_window(what, stamp_ns, epoch)
+                    self._identify_window(what, stamp_ns)
                 else:
                     self._identify(what)
             except Exception as exc:  # noqa: BLE001  (a recording the verb refuses must not end the node)

@@ -6,8 +6,8 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 The grown profile is computed on a worker thread from a copy of the profiler (its ``result()``
 re-processes the buffered tail: a few tenths of a second, which in the executor held back every
-stream): one at a time, published by the executor's timer, and never more often than keeps the
-worker busy ``LIVE_DUTY`` of the time, so its cost per wall second stays bounded at any replay rate.
+stream): one at a time, published by the executor's timer, and never more often than takes
+``LIVE_DUTY`` of a core, so its cost per wall second stays bounded at any replay rate.
 
 At a recording's end (graph run protocol, :mod:`maglev_ros.nodes._lifecycle`) it publishes the
 profile of the whole recording as ``maglev-ros irregularity`` computes it of the same bag: the
@@ -47,8 +47,9 @@ from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 MAX_PENDING_BLOCKS = 5000
-# the live profile's worker is busy at most this fraction of the wall time: after a result that
-# took c s the next starts c * (1 / LIVE_DUTY - 1) s later at the earliest
+# the live profile takes at most this fraction of a core: after a result that took c s of CPU the
+# next starts c * (1 / LIVE_DUTY - 1) s (wall) later at the earliest (CPU, not wall time: on a
+# loaded machine a result takes longer without costing more)
 LIVE_DUTY = 0.25
 TOPIC_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap", TOPIC_VEHICLE_POSITION: "position"}
 
@@ -228,13 +229,13 @@ class IrregularityNode(Node):
             self.live = (self.worker.submit(self._live_result, snapshot), self.epoch, self.last_stamp_ns)
 
     def _live_result(self, profiler):
-        t = time.monotonic()
+        t = time.thread_time()                   # this worker thread's CPU time
         try:
             return profiler.result()
         except UserError:       # not enough of all three topics yet
             return None
         finally:
-            self.live_cost_s = time.monotonic() - t
+            self.live_cost_s = time.thread_time() - t
             self.next_live = time.monotonic() + self.live_cost_s * (1.0 / LIVE_DUTY - 1.0)
 
     def _outcome(self, fut, what: str):

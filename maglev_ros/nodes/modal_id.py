@@ -248,7 +248,7 @@ class ModalIdNode(Node):
         if bag is not None:
             self._recording_ended(bag)
             return
-        self._reset()
+        self.core.reset()
         if self.collector.waiting:
             self.get_logger().info(f"recording {index} ended before its {TOPIC_METADATA}: waiting for it")
 
@@ -264,13 +264,10 @@ class ModalIdNode(Node):
             return None
 
     def _recording_ended(self, bag) -> None:
-        self._reset()                    # the next recording is tracked afresh
+        self.core.reset()                    # the next recording is tracked afresh
         if not self.recording_modes or not bag.has(TOPIC_GUIDEWAY_ACCEL):
             return
         self._submit(("recording", bag, None))     # after the recording's last windows
-
-    def _reset(self) -> None:
-        self.core.reset()
 
     def busy(self) -> bool:
         return self.n_jobs > 0 or self.collector.waiting

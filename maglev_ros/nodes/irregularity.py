@@ -6,7 +6,8 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
 The grown profile is computed on a worker thread from a copy of the profiler (its ``result()``
 re-processes the buffered tail: a few tenths of a second, which in the executor held back every
-stream): one at a time, published by the executor's timer, and never more often than takes
+stream) and published from there as soon as it is out (rclpy's EventsExecutor has no guard
+conditions to hand it back); one at a time, started by the timer, never more often than takes
 ``LIVE_DUTY`` of a core, so its cost per wall second stays bounded at any replay rate.
 
 At a recording's end (graph run protocol, :mod:`maglev_ros.nodes._lifecycle`) it publishes the
@@ -15,7 +16,7 @@ recording's blocks are kept (up to ``max_recording_s`` of stream; beyond, the gr
 final state is published instead, with the band fixed up front) and fitted by the verb's
 :class:`~maglev_ros.irregularity.profile.InertialProfiler` with the verb's defaults (corner and
 band speed from the whole pass), then the node starts afresh for the next recording. That fit runs
-on the same worker (the node says ``busy`` until it is published).
+on the same worker, after any live one (the node says ``busy`` until it is published).
 
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
 spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
@@ -28,6 +29,7 @@ from __future__ import annotations
 import copy
 import json
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -94,8 +96,9 @@ class IrregularityNode(Node):
             subscription(self, SensorBlock, topic, self._on_block(topic, key))
         # one worker: the live profile (of a copy of the profiler) and the recording's profile
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irregularity")
-        self.live = None             # (future, epoch, stamp_ns) of the live profile being computed
-        self.final = None            # (future, stamp_ns) of the recording's profile being computed
+        self.live = None             # future of the live profile being computed (and published)
+        self.final = None            # future of the recording's profile being computed (and published)
+        self.send_lock = threading.Lock()   # the worker publishes; the signature is shared
         self.epoch = 0               # a new recording (metadata) or its end: older results are dropped
         self.n_taken = 0             # blocks fed to the profiler (a copy is made only when it grew)
         self.n_copied = -1
@@ -180,24 +183,24 @@ class IrregularityNode(Node):
         the timer publishes it, ``busy()`` until then."""
         if self.profiler is not None and not self.spent:
             self.epoch += 1                      # a live result still running is of the ended recording
-            job = (self.metadata, self.kept, self.profiler)
-            self.final = (self.worker.submit(self._recording_profile, *job), self.last_stamp_ns)
+            job = (self.metadata, self.kept, self.profiler, self.last_stamp_ns)
+            self.final = self.worker.submit(self._final_job, *job)
         self.spent = True
         self.kept = {k: [] for k in TOPIC_KEYS.values()}
         self.first_stamp_ns = None
         self.gate.new_stream()      # the next recording sets its own layout
 
     def busy(self) -> bool:
-        """The recording's profile is not out yet (the lifecycle asks every 0.2 s: it is published
-        here as soon as the worker has it, not a publish period later)."""
-        self._flush_final()
+        """The recording's profile is not out yet (the worker publishes it, then the job is done)."""
+        if self.final is not None and self.final.done():
+            self._outcome(self.final, "the recording's profile")
+            self.final = None
         return self.final is not None
 
-    def _flush_final(self) -> None:
-        if self.final is not None and self.final[0].done():
-            (fut, stamp_ns), self.final = self.final, None
-            res = self._outcome(fut, "the recording's profile")
-            if res is not None:
+    def _final_job(self, metadata, kept, profiler, stamp_ns: int) -> None:
+        res = self._recording_profile(metadata, kept, profiler)
+        if res is not None:
+            with self.send_lock:
                 self._send(res, stamp_ns)
 
     def _recording_profile(self, metadata, kept, profiler):
@@ -214,29 +217,30 @@ class IrregularityNode(Node):
 
     # ------------------------------------------------------------------ output
     def _publish(self) -> None:
-        """Timer: publish what the worker has finished; start the next live profile when due."""
-        self._flush_final()
-        if self.live is not None and self.live[0].done():
-            (fut, epoch, stamp_ns), self.live = self.live, None
-            res = self._outcome(fut, "the growing profile")
-            if res is not None and epoch == self.epoch and not self.spent:
-                self._send_grown(res, stamp_ns)
+        """Timer: start the next live profile when due (the worker publishes it)."""
+        if self.live is not None and self.live.done():
+            self._outcome(self.live, "the growing profile")
+            self.live = None
         if (self.live is None and self.final is None and self.profiler is not None and not self.spent
                 and self.n_taken != self.n_copied and time.monotonic() >= self.next_live):
             self.n_copied = self.n_taken
             snapshot = copy.deepcopy(self.profiler)      # milliseconds; the fit goes on meanwhile
             # stamped with the newest data in the copy, not the newer data taken by the time it is out
-            self.live = (self.worker.submit(self._live_result, snapshot), self.epoch, self.last_stamp_ns)
+            self.live = self.worker.submit(self._live_job, snapshot, self.epoch, self.last_stamp_ns)
 
-    def _live_result(self, profiler):
+    def _live_job(self, profiler, epoch: int, stamp_ns: int) -> None:
         t = time.thread_time()                   # this worker thread's CPU time
         try:
-            return profiler.result()
+            res = profiler.result()
         except UserError:       # not enough of all three topics yet
-            return None
+            res = None
         finally:
             self.live_cost_s = time.thread_time() - t
             self.next_live = time.monotonic() + self.live_cost_s * (1.0 / LIVE_DUTY - 1.0)
+        # a recording's end (epoch) queues its own profile behind this job: this one is out first
+        if res is not None and epoch == self.epoch and not self.spent:
+            with self.send_lock:
+                self._send_grown(res, stamp_ns)
 
     def _outcome(self, fut, what: str):
         try:
@@ -262,7 +266,7 @@ class IrregularityNode(Node):
         interpreter's teardown, which would join the worker's thread and wait for a result no one
         needs any more)."""
         self.worker.shutdown(wait=False, cancel_futures=True)
-        return any(j is not None and not j[0].done() for j in (self.live, self.final))
+        return any(j is not None and not j.done() for j in (self.live, self.final))
 
     def _send(self, res, stamp_ns: int) -> None:
         if not np.isfinite(res.irregularity_m).any():

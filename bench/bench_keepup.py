@@ -21,6 +21,14 @@ Per node it prints:
     reaches a newer stream time, in stream s) grows with stream time: slope >= 2 % (the node runs
     at < 98 % of the stream's pace) and a growth over the second half > 3x the lag's scatter.
 
+Who is to blame (``judge``): each node's cores at the rate (its CPU while the replay ran, per
+stream second it got through, x the rate) and the machine's CPU over the same time (/proc/stat: the
+other jobs' share is the machine's busy time minus this run's processes'). A node that falls
+behind is blamed on itself when it needs a core or more at the rate (one executor thread cannot
+have more) or when enough cores were free; on the machine when the replay alone (the peer) could not
+reach the rate ("THE MACHINE CANNOT SUSTAIN ...") or when the graph needed more cores than the other
+jobs left free. So the verdict means something on a loaded machine too.
+
 Peers measured in the same run (the house style of bench/): the requested rate, the rate the
 replay achieved with the graph against the replay alone with only the probe (``--no-peer`` skips
 it), and each node's output rate over the replay's. The replay's reliable keep-all topics let a
@@ -156,10 +164,22 @@ class CpuSampler:
             self._names[pid] = name
         return self._names[pid]
 
+    def _machine(self, now: int) -> None:
+        """The whole machine's busy and total CPU seconds (/proc/stat's first line): the other jobs'
+        share is the machine's busy time minus this run's processes'."""
+        try:
+            f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        except (OSError, ValueError):
+            return
+        idle = f[3] + (f[4] if len(f) > 4 else 0)                     # idle + iowait
+        total = sum(f[:8])                                           # guest time is in user already
+        self.series.setdefault("(machine)", []).append([now, (total - idle) / self._tick, total / self._tick])
+
     def _run(self) -> None:
         me = os.getpid()
         while not self._stop.is_set():
             now = time.time_ns()
+            self._machine(now)
             for d in os.listdir("/proc"):
                 if not d.isdigit():
                     continue
@@ -374,8 +394,8 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
     lo_ns, hi_ns = -1_000_000_000, int(allin[:, 4].max() - s0) + 1_000_000_000
     per_node: dict[str, list] = {}
     for t, e in topics.items():
-        if t.startswith(ns + "/testline/"):
-            continue
+        if t.startswith(ns + "/testline/") or e["type"] == STRING:
+            continue                    # the streams; text (status, events, the diagnosis) has no stamp
         node = ",".join(pubs.get(t, [])) or "?"
         outs = per_node.setdefault(node, [])
         for r in e["rows"]:
@@ -448,6 +468,18 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
                 res["cpu_s"] = float(c[sel, 1][-1] - c[sel, 1][0])
                 res["cpu_per_stream_s"] = res["cpu_s"] / done_s
                 res["cores_at_rate"] = res["cpu_per_stream_s"] * requested_rate
+            # the stream work alone: until it had taken the recording's last block (its end's work
+            # comes after that), else until the replay's end, over the stream it got through by
+            # then (the whole recording, or the part taken) -> the cores it needs to keep up
+            last_in = res.get("last_block_taken_s")
+            if last_in is not None:
+                until, got = w_end + max(last_in, 0.0), stream_span
+            else:
+                until, got = w_end, _stream_by(res, diag, outs, w0, s0, w_end, topics, subs, node)
+            during = sel & (c_t <= until + 0.5)
+            if during.sum() >= 2 and got:
+                res["stream_cpu_s"] = float(c[during, 1][-1] - c[during, 1][0])
+                res["stream_cores_at_rate"] = res["stream_cpu_s"] / got * requested_rate
         res["output_trend"], res["input_trend"] = out_trend, in_trend
         trends = [tr for tr in (out_trend, in_trend) if tr]
         late = "last_block_taken_s" in res and (res["last_block_taken_s"] is None
@@ -460,13 +492,106 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
             res["verdict"] = "keeps up" if trends or "last_block_taken_s" in res else "too few figures"
         nodes[node] = res
 
+    machine = _machine_share(probe.get("cpu", {}), w0, w_end)
     replay_line = next((ln for ln in replay_log if "published" in ln and "real time" in ln), "")
     paced = [t for t in inputs if f"subscriber of {t} set the pace" in replay_line]
     probe_latency = (allin[:, 1] - allin[:, 0]) * 1e-9
     return {"requested_rate": requested_rate, "achieved_rate": achieved, "stream_s": stream_span,
             "wall_s": w_end, "replay_line": replay_line, "paced_topics": paced,
             "paced_by": sorted({n for t in paced for n in subs.get(t, [])}),
-            "probe_latency_s": _stats(probe_latency), "topics": topic_rows, "nodes": nodes}
+            "probe_latency_s": _stats(probe_latency), "topics": topic_rows, "nodes": nodes, "machine": machine}
+
+
+def _stream_by(res: dict, diag, outs, w0: int, s0: int, w_end: float, topics, subs, node) -> float | None:
+    """Stream seconds a node had got through when the replay published its last block: the newest
+    input it had taken by then (its /diagnostics), else the newest stamp it had published."""
+    best = None
+    if diag:
+        mine = [t for t in topics if topics[t]["type"] == SENSOR_BLOCK and node in subs.get(t, []) and topics[t]["rows"]]
+        if mine:
+            m = np.concatenate([np.array([r[:5] for r in topics[t]["rows"]], dtype=np.int64) for t in mine])
+            m = m[np.argsort(m[:, 0], kind="stable")]
+            front = np.maximum.accumulate((m[:, 4] - s0) * 1e-9)
+            d = np.array(diag, dtype=np.int64)
+            before = d[(d[:, 0] - w0) * 1e-9 <= w_end + 0.5]
+            if before.size and before[-1, 1] > 0:
+                best = float(front[min(int(before[-1, 1]), front.size) - 1])
+    if best is None and outs:
+        o = np.array([x[:3] for x in outs], dtype=np.int64)
+        o = o[(o[:, 0] - w0) * 1e-9 <= w_end + 0.5]
+        if o.size:
+            best = float((o[:, 2].max() - s0) * 1e-9)
+    return best if best and best > 0 else None
+
+
+def _machine_share(cpu: dict, w0: int, w_end: float) -> dict | None:
+    """CPU of the machine while the replay ran: its cores, how many the other jobs kept busy (the
+    machine's busy time minus this run's processes'), and so how many were left for this run."""
+    m = cpu.get("(machine)")
+    if not m or len(m) < 2:
+        return None
+    m = np.array(m, dtype=float)
+    t = (m[:, 0] - w0) * 1e-9
+    sel = (t >= 0) & (t <= w_end + 0.5)
+    if sel.sum() < 2:
+        sel = np.argsort(np.abs(t))[:2]            # a run shorter than two readings: the nearest two
+    wall = (m[sel, 0].max() - m[sel, 0].min()) * 1e-9
+    if wall <= 0:
+        return None
+    busy = (m[sel, 1].max() - m[sel, 1].min()) / wall
+    cores = (m[sel, 2].max() - m[sel, 2].min()) / wall
+    lo, hi = m[sel, 0].min(), m[sel, 0].max()
+    by_process = {}
+    for name, series in cpu.items():
+        if name == "(machine)":
+            continue
+        c = np.array(series, dtype=float)
+        inside = c[(c[:, 0] >= lo) & (c[:, 0] <= hi)]
+        if inside.shape[0] >= 2:
+            by_process[name] = float(inside[-1, 1] - inside[0, 1]) / wall
+    ours = sum(by_process.values())
+    others = max(busy - ours, 0.0)
+    return {"cores": cores, "busy_cores": busy, "ours_cores": ours, "others_cores": others,
+            "free_for_us_cores": max(cores - others, 0.0), "cores_by_process": by_process}
+
+
+# a node that needs at least this many cores at the rate cannot keep up on any machine: one executor
+# thread (and Python's one interpreter lock) gives it one core at most
+ONE_CORE = 0.9
+# the replay alone must reach this fraction of the requested rate for the machine to sustain it
+PEER_MIN = 0.95
+
+
+def judge(r: dict, peer: dict | None) -> None:
+    """Who is to blame for a node falling behind: the node (it needs a core or more at this rate),
+    or this machine at this moment (the replay alone cannot reach the rate, or the graph needs more
+    cores than the other jobs left free). Sets each node's ``blame`` and the run's ``capacity``."""
+    rate = r["requested_rate"]
+    machine = r.get("machine") or {}
+    # the nodes' stream work at the rate, plus what the replay and the probe used meanwhile
+    need = sum(n.get("stream_cores_at_rate") or 0.0 for n in r["nodes"].values())
+    need += sum(c for name, c in (machine.get("cores_by_process") or {}).items() if name not in r["nodes"])
+    free = machine.get("free_for_us_cores")
+    alone = peer["achieved_rate"] if peer else None
+    r["capacity"] = {"graph_needs_cores": need, "free_cores": free, "replay_alone_rate": alone,
+                     "machine_cannot_replay": alone is not None and alone < PEER_MIN * rate,
+                     "graph_over_capacity": free is not None and need > free}
+    for n in r["nodes"].values():
+        if not n["verdict"].startswith("falls behind"):
+            n["blame"] = None
+            continue
+        own = n.get("stream_cores_at_rate")
+        if own is not None and own >= ONE_CORE:
+            n["blame"] = f"the node: it needs {own:.2f} cores at {rate:g}x, one is its most"
+        elif r["capacity"]["machine_cannot_replay"]:
+            n["blame"] = f"the machine: the replay alone reached {alone:.2f}x of {rate:g}x"
+        elif r["capacity"]["graph_over_capacity"]:
+            n["blame"] = (f"the machine: the graph needs {need:.2f} cores at {rate:g}x, the other jobs left "
+                          f"{free:.2f} of {machine['cores']:.0f} free")
+        elif free is None or own is None:
+            n["blame"] = "unknown: no CPU figures of the machine or the node"
+        else:
+            n["blame"] = f"the node: {own:.2f} cores needed, enough were free"
 
 
 # ----------------------------------------------------------------------------- printing
@@ -491,13 +616,24 @@ def print_run(r: dict, peer: dict | None) -> None:
     if lost:
         print(f"  the probe (best effort) lost {lost} of {sum(t['received'] for t in r['topics']) + lost} messages "
               "under this load: the figures are of the rest (--reliable-probe takes all, and joins the back-pressure)")
+    cap, mach = r.get("capacity") or {}, r.get("machine") or {}
+    if mach:
+        print(f"  machine while the replay ran: {mach['cores']:.1f} cores, {mach['others_cores']:.2f} busy with "
+              f"other jobs, {mach['ours_cores']:.2f} with this run; the graph's stream work needs "
+              f"{_f(cap.get('graph_needs_cores'))} cores at {rate:g}x ({_f(mach['free_for_us_cores'])} were free)")
+    if cap.get("machine_cannot_replay"):
+        print(f"  THE MACHINE CANNOT SUSTAIN {rate:g}x NOW: the replay alone reached {cap['replay_alone_rate']:.2f}x; "
+              "a node falling behind here says nothing about the node")
+    elif cap.get("graph_over_capacity"):
+        print("  the graph needs more cores than the other jobs left free: falling behind is this machine's "
+              "load unless a node needs a core or more itself (blame below)")
     lat = r["probe_latency_s"]
     print(f"  probe latency (replay publish -> probe receive): median {_f(lat['median'] * 1e3, '{:.1f}')} ms, "
           f"max {_f(lat['max'] * 1e3, '{:.1f}')} ms")
     print(f"  {'node':13s} {'out':>5s} {'warm-up':>7s} {'out lag':>11s} {'in lag':>11s} {'last in':>7s} "
-          f"{'delay':>11s} {'x real':>6s} {'/replay':>7s} {'cpu s per':>9s} {'slope':>7s} {'after':>6s}  verdict")
+          f"{'delay':>11s} {'x real':>6s} {'/replay':>7s} {'cores':>9s} {'slope':>7s} {'after':>6s}  verdict")
     print(f"  {'':13s} {'':>5s} {'wall s':>7s} {'med/max':>11s} {'med/max':>11s} {'wall s':>7s} "
-          f"{'med/max':>11s} {'time':>6s} {'':>7s} {'stream s':>9s} {'':>7s} {'end s':>6s}")
+          f"{'med/max':>11s} {'time':>6s} {'':>7s} {'at rate':>9s} {'':>7s} {'end s':>6s}")
     for node, n in sorted(r["nodes"].items()):
         def mm(d, fmt="{:.1f}"):
             d = d or {}
@@ -510,12 +646,14 @@ def print_run(r: dict, peer: dict | None) -> None:
               f"{mm(n.get('output_lag_s')):>11s} {mm(n.get('input_lag_s')):>11s} {last_in:>7s} "
               f"{mm(n.get('delay_s'), '{:.1f}'):>11s} "
               f"{_f(rx, '{:.1f}'):>6s} {_f(None if rx is None else rx / r['achieved_rate']):>7s} "
-              f"{_f(n.get('cpu_per_stream_s'), '{:.3f}'):>9s} "
-              f"{_f(tr.get('slope'), '{:+.3f}'):>7s} {_f(n.get('after_end_s'), '{:.1f}'):>6s}  {n['verdict']}")
+              f"{_f(n.get('stream_cores_at_rate'), '{:.3f}'):>9s} "
+              f"{_f(tr.get('slope'), '{:+.3f}'):>7s} {_f(n.get('after_end_s'), '{:.1f}'):>6s}  {n['verdict']}"
+              + (f" ({n['blame']})" if n.get("blame") else ""))
     print("  (lags in stream s: the replay's newest published sample minus the newest the node published "
           "(out) or took (in); last in: when it had taken every block, after the replay's last; delay: "
           "replay publish -> output at the probe; x real time: the node's output stream s per wall s, "
-          "/replay: over the replay's achieved rate; cpu s per stream s x rate = cores it needs)")
+          "/replay: over the replay's achieved rate; cores at rate: its CPU while the replay ran per stream s "
+          "it got through, x the rate: the cores it needs to keep up)")
     print(f"  {'topic':44s} {'role':6s} {'received':>8s} {'published':>9s} {'lost':>5s}  publisher -> subscribers")
     for t in r["topics"]:
         print(f"  {t['topic']:44s} {t['role']:6s} {t['received']:8d} {t.get('published', 0):9d} "
@@ -586,6 +724,7 @@ def main(argv=None) -> int:
             res = analyse(run["probe"], rate, run["log"])
             res["graph_wall_s"] = run["wall_s"]
             res["exit_code"] = run["code"]
+            judge(res, peer)
             print()
             print_run(res, peer)
             results["runs"].append({"rate": rate, "graph": res, "replay_alone": peer})

@@ -92,6 +92,28 @@ def view_urls(host: str, port: int) -> tuple[str, str]:
     return f"https://app.foxglove.dev/?ds=foxglove-websocket&ds.url={ws}", ws
 
 
+def extra_nodes(record: str | None = None, record_inputs: bool = False, record_reliable: bool = False,
+                sim_time: bool = False, view: bool = False, view_host: str = "127.0.0.1",
+                view_port: int = VIEW_PORT) -> list[NodeSpec]:
+    """The nodes beside a graph that ``maglev-ros launch --record/--view`` and monitor.launch.py's
+    ``record:=``/``view:=`` add: the MCAP recorder (log times on the replay's /clock when
+    ``sim_time``, i.e. with a bag) and the Foxglove bridge. Raises UserError (one line) for a record
+    file that is not .mcap, record options without a file, a port outside 1-65535."""
+    from maglev_ros.errors import UserError
+    out = []
+    if record:
+        if not str(record).endswith(".mcap"):
+            raise UserError(f"record {record}: expected a file name ending in .mcap")
+        out.append(recorder_spec(record, record_inputs, record_reliable, sim_time=sim_time))
+    elif record_inputs or record_reliable:
+        raise UserError("record_inputs / record_reliable: given without a record file (.mcap)")
+    if view:
+        if not 1 <= int(view_port) <= 65535:
+            raise UserError(f"view_port: expected a port 1-65535, got {view_port}")
+        out.append(view_node(view_host, int(view_port)))
+    return out
+
+
 def graph(name: str) -> list[NodeSpec]:
     from maglev_ros.errors import UserError
     if name not in GRAPHS:
@@ -131,6 +153,15 @@ LAUNCH_ARGUMENTS = (
                         "which comes once every node has published the last recording's results"),
     ("results_timeout_s", "900.0", "after each recording, wait at most this long for the nodes' results "
                                    "(the live diagnosis of a pass takes minutes on a busy machine)"),
+    ("record", "", "record the graph's /maglev/* outputs, /testline/metadata and /diagnostics to this "
+                   ".mcap file (empty: no recorder)"),
+    ("record_inputs", "false", "with record: also the /testline/* streams (the file is then a contract "
+                               "recording too)"),
+    ("record_reliable", "false", "with record: subscribe the streams reliably (nothing lost; the replay "
+                                 "then also waits for the recorder)"),
+    ("view", "false", "also serve the live view to Foxglove (WebSocket; docs/live_view.md)"),
+    ("view_host", "127.0.0.1", "address the live view listens on (0.0.0.0 serves other machines)"),
+    ("view_port", str(VIEW_PORT), "port of the live view"),
 )
 # the replay's start-up gating in a launched graph: every other node up, a subscriber on every
 # data topic, each at most this long (process start-up, imports and kernel compilation take a while

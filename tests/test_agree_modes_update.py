@@ -194,7 +194,7 @@ rclpy.init(args=["x", "--ros-args", "-p", "magnet_layer:=false"])
 node = UpdaterNode()
 ends, used = [], []
 node._end_update = lambda ambient, passes: ends.append([str(b.path) for b in (ambient, *passes)])
-node.core.on_modes = lambda modes, stamp: used.append(round(stamp, 3))
+node.core.take_modes_job = lambda modes, stamp: used.append(round(stamp, 3))   # the estimates the node hands on
 md = json.loads(sys.argv[1])
 
 def metadata(kind, name):

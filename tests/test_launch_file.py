@@ -72,11 +72,30 @@ def _from_launch_file(monkeypatch, given: dict) -> dict:
     return out
 
 
-def _from_launcher(argv: list[str]) -> dict:
-    """The same, parsed from the command lines ``maglev-ros launch monitor ARGV`` starts."""
-    args = build_parser().parse_args(["launch", "monitor", *argv])
+def _cli_launch(monkeypatch, argv: list[str]) -> dict:
+    """The keyword arguments ``maglev-ros launch monitor ARGV`` (the verb's own ``run``) hands the
+    launcher, the --record/--view nodes included; nothing is started."""
+    import maglev_ros.launcher
+    from maglev_ros.commands.launch import run
+    seen = {}
+
+    def fake_launch(graph_name, **kwargs):
+        seen.update(kwargs)
+        return 0
+    monkeypatch.setattr(maglev_ros.launcher, "launch", fake_launch)
+    assert run(build_parser().parse_args(["launch", "monitor", *argv])) == 0
+    return seen
+
+
+def _from_launcher(argv: list[str], monkeypatch=None) -> dict:
+    """The same, parsed from the command lines ``maglev-ros launch monitor ARGV`` starts (with
+    ``monkeypatch``: as the verb's ``run`` builds them, extra nodes included)."""
+    if monkeypatch is not None:
+        kwargs = _cli_launch(monkeypatch, argv)
+    else:
+        kwargs = launch_kwargs(build_parser().parse_args(["launch", "monitor", *argv]))
     out = {}
-    for spec, cmd in command_lines("monitor", **launch_kwargs(args)):
+    for spec, cmd in command_lines("monitor", **kwargs):
         ros = cmd[cmd.index("--ros-args") + 1:]
         name, ns, remaps, pfile, params = None, "", [], None, {}
         for flag, value in zip(ros[::2], ros[1::2]):
@@ -125,6 +144,39 @@ def test_the_defaults_agree_too(monkeypatch):
     assert all(ns == "" and remaps == () for ns, remaps, *_ in cli.values())
     # without a bag: no replay, in both
     assert "replay" not in _from_launch_file(monkeypatch, {}) and "replay" not in _from_launcher([])
+
+
+def test_record_and_view_start_the_same_recorder_and_bridge(monkeypatch, tmp_path):
+    """``--record/--record-inputs/--view/--view-port`` and the launch file's ``record:=`` ... give
+    the same recorder (path, inputs, log time on the replay's clock) and Foxglove bridge."""
+    rec = tmp_path / "run.mcap"
+    argv = ["--bag", str(BAG), "--record", str(rec), "--record-inputs", "--view", "--view-port", "9001",
+            "--view-host", "0.0.0.0", "--out", str(tmp_path / "o")]
+    given = {"bag": str(BAG), "record": str(rec), "record_inputs": "true", "view": "true",
+             "view_port": "9001", "view_host": "0.0.0.0", "out": str(tmp_path / "o")}
+    cli = _from_launcher(argv, monkeypatch)
+    assert _from_launch_file(monkeypatch, given) == cli
+    assert {"recorder", "foxglove_bridge"} <= set(cli)
+    recorder, bridge = cli["recorder"][3], cli["foxglove_bridge"][3]
+    assert recorder["path"] == str(rec) and recorder["include_inputs"] == "true"
+    assert recorder["reliable"] == "false" and recorder["use_sim_time"] == "true"
+    assert bridge == {"host": "0.0.0.0", "port": "9001"}
+    # the replay does not wait for the observer (the bridge), it does for the recorder's topics' nodes
+    assert "foxglove_bridge" not in cli["replay"][3]["wait_nodes"]
+    # without record/view: neither, in both
+    plain = _from_launch_file(monkeypatch, {"bag": str(BAG)})
+    assert not {"recorder", "foxglove_bridge"} & set(plain)
+
+
+@pytest.mark.parametrize("given, match", [
+    ({"record": "run.bag"}, r"^record run.bag: expected a file name ending in .mcap$"),
+    ({"record_inputs": "true"}, r"^record_inputs / record_reliable: given without a record file"),
+    ({"view": "true", "view_port": "70000"}, r"^view_port: expected a port 1-65535, got 70000$"),
+])
+def test_the_launch_files_record_and_view_mistakes_are_one_line(monkeypatch, given, match):
+    with pytest.raises(UserError, match=match) as err:
+        _from_launch_file(monkeypatch, given)
+    assert "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize("bad", ["line 1", "/1line", "/a//b", "/a-b"])

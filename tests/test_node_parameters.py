@@ -73,7 +73,8 @@ def harness(out: str) -> None:
                     out_of_range[pname] = [r.successful, r.reason]
             entry = {"names": names, "descr": descr, "ours": sorted(specs), "refused": refused,
                      "out_of_range": out_of_range,
-                     "has_range": sorted(p for p, s in specs.items() if s.range is not None)}
+                     "has_range": sorted(p for p, s in specs.items() if s.range is not None),
+                     "timers": len(list(node.timers))}
             if live is not None:
                 pname, value = live
                 before = probe(node)
@@ -147,6 +148,16 @@ def test_a_live_parameter_change_is_used_by_the_node(built, node):
     pname, value, before, ok, reason, after = built[node]["live"]
     assert ok, reason
     assert before != pytest.approx(value) and after == pytest.approx(value), (pname, before, after)
+
+
+# rclpy's EventsExecutor prints "the number of timers associated with this clock is large" from this
+# many timers on one clock on (a timer per sensor subscription made the twin and discrepancy say it)
+EVENTS_EXECUTOR_WARN_TIMERS = 8
+
+
+@pytest.mark.parametrize("node", sorted(CASES))
+def test_a_node_has_fewer_timers_than_rclpy_warns_about(built, node):
+    assert built[node]["timers"] < EVENTS_EXECUTOR_WARN_TIMERS
 
 
 def test_a_bad_start_value_is_one_line_naming_the_parameter(built):

@@ -111,6 +111,11 @@ class StreamingSSI:
         self.time_s = 0.0                                   # stream time at the last result
 
     def push(self, block: np.ndarray) -> list[ModalResult]:
+        return [self.identify(w) for w in self.push_windows(block)]
+
+    def push_windows(self, block: np.ndarray) -> list[dict]:
+        """The cheap half of :meth:`push`: the block taken in, and the covariances of each window it
+        completes (what :meth:`identify` needs; a node identifies them on a worker thread)."""
         block = np.asarray(block, dtype=float)
         if block.ndim != 2 or block.shape[1] != len(self.channels):
             raise UserError(f"block: expected shape (n, {len(self.channels)}), got {block.shape}")
@@ -129,7 +134,7 @@ class StreamingSSI:
                 self._add_chunk(chunk)
                 if len(self._chunks) >= self.min_chunks:
                     self.time_s = end_in / self.fs_in_hz
-                    out.append(self._identify())
+                    out.append(self._window())
         return out
 
     def _add_chunk(self, chunk: np.ndarray) -> None:
@@ -149,7 +154,8 @@ class StreamingSSI:
         self._mean_acc.append(chunk.sum(axis=0))
         self._hist = seg[-self.max_lag:] if seg.shape[0] >= self.max_lag else seg
 
-    def _identify(self) -> ModalResult:
+    def _window(self) -> dict:
+        """The current window's covariances (and its blocks' for the uncertainty)."""
         sums = np.stack([c[0] for c in self._chunks])
         counts = np.array([c[1] for c in self._chunks], dtype=float)
         pairs = np.stack([c[2] for c in self._chunks])             # (chunks, lags)
@@ -163,9 +169,16 @@ class StreamingSSI:
             groups = np.array_split(np.arange(len(self._chunks)), nb)
             block_covs = np.stack([sums[g].sum(axis=0) / np.maximum(pairs[g].sum(axis=0), 1)[:, None, None]
                                    - corr[None] for g in groups])
+        return {"cov": cov, "block_covs": block_covs,
+                "window_s": len(self._chunks) * self.chunk_in / self.fs_in_hz}
+
+    def identify(self, window: dict) -> ModalResult:
+        """SSI of a :meth:`push_windows` window (the long part). Windows are identified in order;
+        one left out only changes the warm start of the next SVD."""
         v0 = None if (self._v is None or self._n_updates % self.exact_svd_every == 0) else self._v
-        res, self._v = self.ssi.fit_covariances(cov, self.fs_hz, self.channels,
-                                                block_covs=block_covs, v0=v0)
+        with blas_threads(self.ssi.blas_threads):
+            res, self._v = self.ssi.fit_covariances(window["cov"], self.fs_hz, self.channels,
+                                                    block_covs=window["block_covs"], v0=v0)
         self._n_updates += 1
         return res
 
@@ -444,7 +457,12 @@ class OnlineModalID:
         self.key = (tuple(channels), float(fs_hz))
 
     def push(self, stamp_s: float, data: np.ndarray, channels, fs_hz: float) -> list[TrackerUpdate]:
-        from maglev_ros.modal.bands import BandResult, merge_band_results
+        return [self.identify(job) for job in self.push_windows(stamp_s, data, channels, fs_hz)]
+
+    def push_windows(self, stamp_s: float, data: np.ndarray, channels, fs_hz: float) -> list[dict]:
+        """The cheap half of :meth:`push`: the block taken in; one job per window it completes (every
+        band's covariances, the tracker, the time), for :meth:`identify`, which may run on another
+        thread: jobs are identified in order, and one left out is an update that never was."""
         key = (tuple(channels), float(fs_hz))
         if self.key != key:
             if self.key is not None:
@@ -452,10 +470,17 @@ class OnlineModalID:
             self._start(channels, fs_hz)
             self.t0_s = float(stamp_s)
         x = np.asarray(data, dtype=float)
-        per_band = [st.push(x) for st in self.streams]
-        out = []
-        # every band completes the same chunks on the same input sample: results pair up
-        for results in zip(*per_band):
-            merged = merge_band_results([BandResult(b, r) for b, r in zip(self.plan.bands, results)])
-            out.append(self.tracker.update(merged, self.t0_s + self.streams[0].time_s))
-        return out
+        per_band = [st.push_windows(x) for st in self.streams]
+        time_s = self.t0_s + self.streams[0].time_s
+        # every band completes the same chunks on the same input sample: windows pair up
+        return [{"tracker": self.tracker, "plan": self.plan, "time_s": time_s,
+                 "window_s": windows[0]["window_s"], "bands": list(zip(self.streams, windows))}
+                for windows in zip(*per_band)]
+
+    @staticmethod
+    def identify(job: dict) -> TrackerUpdate:
+        """The SSI of every band of a :meth:`push_windows` job, merged, and the tracker's update."""
+        from maglev_ros.modal.bands import BandResult, merge_band_results
+        results = [st.identify(w) for st, w in job["bands"]]
+        merged = merge_band_results([BandResult(b, r) for b, r in zip(job["plan"].bands, results)])
+        return job["tracker"].update(merged, job["time_s"])

@@ -120,6 +120,9 @@ def run_node(node_factory, args=None) -> int:
         abandon = node is not None and hasattr(node, "unfinished_work") and node.unfinished_work()
         if executor is not None:
             executor.shutdown()
+        diagnostics = getattr(node, "diagnostics", None)
+        if diagnostics is not None and hasattr(diagnostics, "close"):
+            diagnostics.close()          # its thread publishes no more on a node being destroyed
         if node is not None:
             node.destroy_node()
         if rclpy.ok():

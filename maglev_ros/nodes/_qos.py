@@ -83,12 +83,28 @@ def subscription(node, msg_type, topic: str, callback, qos: QoSProfile | None = 
                                     qos_overriding_options=_overrides())
 
 
+def _adapting(node) -> list:
+    """The node's adapting sensor subscriptions, checked by ONE timer of the node: a timer per
+    subscription made rclpy's EventsExecutor warn ("the number of timers associated with this
+    clock is large", from 8 timers on) in nodes that subscribe every stream."""
+    subs = getattr(node, "_maglev_sensor_subscriptions", None)
+    if subs is None:
+        subs = node._maglev_sensor_subscriptions = []
+
+        def check() -> None:
+            for s in subs:
+                s.adapt()
+        node._maglev_sensor_timer = node.create_timer(SensorSubscription.CHECK_PERIOD_S, check)
+    return subs
+
+
 class SensorSubscription:
     """A subscription to a sensor stream that follows the reliability its publishers offer.
 
     Reliable by default (the replay is paced by it). Checked at creation and every
-    ``CHECK_PERIOD_S``: when the topic has publishers and every one is best effort, the
-    subscription is made again best effort; when no best-effort publisher is left, reliable again.
+    ``CHECK_PERIOD_S`` (one timer of the node checks all its sensor subscriptions): when the topic
+    has publishers and every one is best effort, the subscription is made again best effort; when
+    no best-effort publisher is left, reliable again.
     A switch happens only while the current subscription receives nothing from the topic (a
     reliable reader gets nothing from best-effort writers; a best-effort one switches back once
     they are gone), so it loses no message it would have taken. Reliable and best-effort publishers
@@ -110,7 +126,7 @@ class SensorSubscription:
         self.name = self.sub.topic_name              # fully qualified (namespace, remappings)
         self._warned_mixed = False
         if self.adapts:
-            self.timer = node.create_timer(self.CHECK_PERIOD_S, self.adapt)
+            _adapting(node).append(self)
             self.adapt()
 
     @property

@@ -4,13 +4,19 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 :class:`maglev_ros.irregularity.profile.IncrementalProfiler`; publishes the profile on
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
 profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
+The grown profile is computed on a worker thread from a copy of the profiler (its ``result()``
+re-processes the buffered tail: a few tenths of a second, which in the executor held back every
+stream) and published from there as soon as it is out (rclpy's EventsExecutor has no guard
+conditions to hand it back); one at a time, started by the timer, never more often than takes
+``LIVE_DUTY`` of a core, so its cost per wall second stays bounded at any replay rate.
 
 At a recording's end (graph run protocol, :mod:`maglev_ros.nodes._lifecycle`) it publishes the
 profile of the whole recording as ``maglev-ros irregularity`` computes it of the same bag: the
 recording's blocks are kept (up to ``max_recording_s`` of stream; beyond, the growing profile's
 final state is published instead, with the band fixed up front) and fitted by the verb's
 :class:`~maglev_ros.irregularity.profile.InertialProfiler` with the verb's defaults (corner and
-band speed from the whole pass), then the node starts afresh for the next recording.
+band speed from the whole pass), then the node starts afresh for the next recording. That fit runs
+on the same worker, after any live one (the node says ``busy`` until it is published).
 
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
 spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
@@ -20,8 +26,12 @@ publish_period_s (1.0, live), max_recording_s (1800); each with its description 
 """
 from __future__ import annotations
 
+import copy
 import json
 import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from rclpy.node import Node
@@ -39,6 +49,10 @@ from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 MAX_PENDING_BLOCKS = 5000
+# the live profile takes at most this fraction of a core: after a result that took c s of CPU the
+# next starts c * (1 / LIVE_DUTY - 1) s (wall) later at the earliest (CPU, not wall time: on a
+# loaded machine a result takes longer without costing more)
+LIVE_DUTY = 0.25
 TOPIC_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap", TOPIC_VEHICLE_POSITION: "position"}
 
 PARAMS = (
@@ -80,7 +94,18 @@ class IrregularityNode(Node):
         subscription(self, String, TOPIC_METADATA, self._on_metadata)
         for topic, key in TOPIC_KEYS.items():
             subscription(self, SensorBlock, topic, self._on_block(topic, key))
+        # one worker: the live profile (of a copy of the profiler) and the recording's profile
+        self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irregularity")
+        self.live = None             # future of the live profile being computed (and published)
+        self.final = None            # future of the recording's profile being computed (and published)
+        self.send_lock = threading.Lock()   # the worker publishes; the signature is shared
+        self.epoch = 0               # a new recording (metadata) or its end: older results are dropped
+        self.n_taken = 0             # blocks fed to the profiler (a copy is made only when it grew)
+        self.n_copied = -1
+        self.next_live = 0.0         # monotonic time before which no live result starts (LIVE_DUTY)
+        self.live_cost_s = 0.0
         self.timer = self.create_timer(period, self._publish)
+        self.diagnostics.add_check(self._worker_check)
         self.lifecycle = NodeLifecycle(self, diagnostics=self.diagnostics)
 
     def set_publish_period(self, period_s: float) -> None:
@@ -101,6 +126,8 @@ class IrregularityNode(Node):
         self.gate.new_stream()
         self.metadata, self.spent, self.profiler = md, False, None
         self.published_signature = None
+        self.epoch += 1
+        self.n_taken, self.n_copied = 0, -1
         if not offsets:
             self.get_logger().warning("metadata has no vehicle.magnet_offsets_m (ambient run?)")
             self.pending.clear()
@@ -130,6 +157,7 @@ class IrregularityNode(Node):
     def _take(self, key: str, block) -> None:
         self.last_stamp_ns = max(self.last_stamp_ns, block.end_ns)
         self._keep(key, block)
+        self.n_taken += 1
         try:
             self.profiler.partial_fit(**{key: block})
         except Exception as exc:  # noqa: BLE001
@@ -151,25 +179,36 @@ class IrregularityNode(Node):
 
     # ------------------------------------------------------------------ protocol
     def on_recording_end(self, index: int) -> None:
-        """Publish the whole recording's profile (the verb's), then start afresh."""
+        """Compute the whole recording's profile (the verb's) on the worker, then start afresh;
+        the timer publishes it, ``busy()`` until then."""
         if self.profiler is not None and not self.spent:
-            res = self._recording_profile()
-            if res is not None:
-                self._send(res)
+            self.epoch += 1                      # a live result still running is of the ended recording
+            job = (self.metadata, self.kept, self.profiler, self.last_stamp_ns)
+            self.final = self.worker.submit(self._final_job, *job)
         self.spent = True
         self.kept = {k: [] for k in TOPIC_KEYS.values()}
         self.first_stamp_ns = None
         self.gate.new_stream()      # the next recording sets its own layout
 
     def busy(self) -> bool:
-        return False                # on_recording_end publishes before it returns
+        """The recording's profile is not out yet (the worker publishes it, then the job is done)."""
+        if self.final is not None and self.final.done():
+            self._outcome(self.final, "the recording's profile")
+            self.final = None
+        return self.final is not None
 
-    def _recording_profile(self):
+    def _final_job(self, metadata, kept, profiler, stamp_ns: int) -> None:
+        res = self._recording_profile(metadata, kept, profiler)
+        if res is not None:
+            with self.send_lock:
+                self._send(res, stamp_ns)
+
+    def _recording_profile(self, metadata, kept, profiler):
         from maglev_ros.irregularity.recording import recording_profile
         try:
-            if self.kept is None or not all(self.kept.values()):
-                return self.profiler.result()
-            return recording_profile(self.metadata, {t: self.kept[k] for t, k in TOPIC_KEYS.items()},
+            if kept is None or not all(kept.values()):
+                return profiler.result()
+            return recording_profile(metadata, {t: kept[k] for t, k in TOPIC_KEYS.items()},
                                      highpass_hz=self.highpass_hz, spacing_m=self.spacing_m,
                                      band_speed_mps=self.band_speed_mps or None)
         except UserError as exc:
@@ -178,23 +217,62 @@ class IrregularityNode(Node):
 
     # ------------------------------------------------------------------ output
     def _publish(self) -> None:
-        if self.profiler is None or self.spent:
-            return
+        """Timer: start the next live profile when due (the worker publishes it)."""
+        if self.live is not None and self.live.done():
+            self._outcome(self.live, "the growing profile")
+            self.live = None
+        if (self.live is None and self.final is None and self.profiler is not None and not self.spent
+                and self.n_taken != self.n_copied and time.monotonic() >= self.next_live):
+            self.n_copied = self.n_taken
+            snapshot = copy.deepcopy(self.profiler)      # milliseconds; the fit goes on meanwhile
+            # stamped with the newest data in the copy, not the newer data taken by the time it is out
+            self.live = self.worker.submit(self._live_job, snapshot, self.epoch, self.last_stamp_ns)
+
+    def _live_job(self, profiler, epoch: int, stamp_ns: int) -> None:
+        t = time.thread_time()                   # this worker thread's CPU time
         try:
-            res = self.profiler.result()
+            res = profiler.result()
         except UserError:       # not enough of all three topics yet
-            return
+            res = None
+        finally:
+            self.live_cost_s = time.thread_time() - t
+            self.next_live = time.monotonic() + self.live_cost_s * (1.0 / LIVE_DUTY - 1.0)
+        # a recording's end (epoch) queues its own profile behind this job: this one is out first
+        if res is not None and epoch == self.epoch and not self.spent:
+            with self.send_lock:
+                self._send_grown(res, stamp_ns)
+
+    def _outcome(self, fut, what: str):
+        try:
+            return fut.result()
+        except Exception as exc:  # noqa: BLE001  (a failed fit must not end the node)
+            self.get_logger().error(f"irregularity: {what} failed: {exc}")
+            return None
+
+    def _send_grown(self, res, stamp_ns: int) -> None:
         signature = (res.position_m.size, int(np.isfinite(res.irregularity_m).sum()))
         if signature[1] == 0 or signature == self.published_signature:
             return
         self.published_signature = signature
-        self._send(res)
+        self._send(res, stamp_ns)
 
-    def _send(self, res) -> None:
+    def _worker_check(self):
+        from maglev_ros.nodes._diagnostics import OK, Check
+        return Check(OK, "", {"live_profile_cost_s": f"{self.live_cost_s:.3f}",
+                              "recording_profile_running": self.final is not None})
+
+    def unfinished_work(self) -> bool:
+        """At shutdown: True while the worker still computes (the process then ends without the
+        interpreter's teardown, which would join the worker's thread and wait for a result no one
+        needs any more)."""
+        self.worker.shutdown(wait=False, cancel_futures=True)
+        return any(j is not None and not j.done() for j in (self.live, self.final))
+
+    def _send(self, res, stamp_ns: int) -> None:
         if not np.isfinite(res.irregularity_m).any():
             return
         msg = IrregularityProfile()
-        stamp_to_msg(self.last_stamp_ns, msg.header)
+        stamp_to_msg(stamp_ns, msg.header)
         msg.header.frame_id = "guideway"
         msg.start_position_m = float(res.position_m[0])
         msg.spacing_m = float(res.spacing_m)

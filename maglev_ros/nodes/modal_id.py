@@ -7,6 +7,12 @@ tracked across updates (stable ids, "new"/"tracked"/"lost"); a ModalEstimate on 
 recording (bands, decimation, block rows and orders by ``maglev_ros.modal.bands.plan_bands`` on a
 record of ``window_s`` at the stream's rate); the window, unless given, is the shortest record on
 which those rules look down to ``fmin_hz`` (1 Hz: 40 s). The tracker restarts with each recording.
+The executor only takes the blocks in (covariances per ``update_s`` chunk: cheap); each window's
+SSI (about half a second for a 30 s window of ten channels) runs on the node's worker thread, in
+order, and its estimate is published from there. When a window completes while the previous one
+is still being identified and another waits, the waiting one is left out (``skip_when_busy``,
+counted on /diagnostics as ``windows_skipped``): at a replay rate the SSI cannot follow the node
+publishes fewer updates instead of falling ever further behind the stream.
 
 At the end of each recording (the replay's ``recording_end``, :mod:`maglev_ros.nodes._lifecycle`;
 on a live stream, metadata that differs from the current): the recording's guideway accelerations
@@ -21,16 +27,17 @@ Parameters (also from YAML: ``--params-file config/modal_id.yaml``); 0 = chosen 
 window_s (0), update_s (2), decimate_to_hz (0; a rate: one band there), block_rows (0),
 max_order (0), order_step (4), fmin_hz (0), fmax_hz (0), n_blocks (0), freq_tol (0.03), mac_min
 (0.8), max_misses (3), min_confirm (2), channels (string[]; default: every vertical guideway
-accelerometer), recording_modes (true: the whole-recording identification at each end),
+accelerometer), skip_when_busy (true), recording_modes (true: the whole-recording identification
+at each end),
 max_recording_mb (1000: a longer recording, as received, is not kept and gets no whole-recording
 modes: a live stream that never ends must not fill the memory).
 """
 from __future__ import annotations
 
 import math
-import queue
 import sys
 import threading
+from collections import deque
 from dataclasses import fields
 
 from rclpy.duration import Duration
@@ -86,6 +93,8 @@ def _params() -> tuple[Param, ...]:
         out.append(Param(f.name, d, text, range=rng))
     out += [Param("channels", [""], "guideway accelerometer channels to identify from (empty: every "
                                     "vertical one in the metadata)"),
+            Param("skip_when_busy", True, "leave out a window that completes while the previous one is still "
+                                          "identified and another waits (false: every window, however late)"),
             Param("recording_modes", True, "at each recording's end, the whole-recording identification "
                                            "of the modes verb"),
             Param("max_recording_mb", 1000.0, "keep at most this much of a recording for its end [MB]",
@@ -103,6 +112,7 @@ class ModalIdNode(Node):
         self.wanted = [c for c in v["channels"] if c]
         self.wanted_given = bool(self.wanted)
         self.recording_modes = bool(v["recording_modes"])
+        self.skip_when_busy = bool(v["skip_when_busy"])
         self.pub = publisher(self, ModalEstimate, TOPIC_MODES)
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
@@ -112,13 +122,20 @@ class ModalIdNode(Node):
                                             name=f"{self.get_fully_qualified_name()} recording",
                                             max_bytes=max_mb * 1e6)
         self.lock = threading.Lock()               # the collector: fed by callbacks, emptied at an end
-        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
-        self.n_jobs = 0                            # recordings handed over and not yet published
+        # the worker's queue, in order: ("window", job, stamp_ns) | ("recording", bag, None); a
+        # recording's windows come before its whole-recording job and before the next one's windows,
+        # and a job carries its own tracker: what a recording's windows give stays that recording's
+        self.jobs: deque = deque()
+        self.wake = threading.Condition(self.lock)
+        self.n_jobs = 0                            # queued or running, not yet published
+        self.windows_skipped = 0
         subscription(self, String, TOPIC_METADATA, self._on_metadata)
         subscription(self, SensorBlock, TOPIC_GUIDEWAY_ACCEL, self._on_block)
         if self.recording_modes:   # a pass's free decay starts where the vehicle has left the span
             subscription(self, SensorBlock, TOPIC_VEHICLE_POSITION, self._on_position)
-            threading.Thread(target=self._work, daemon=True).start()
+        self.worker = threading.Thread(target=self._work, name="modal_id-worker", daemon=True)
+        self.worker.start()
+        self.diagnostics.add_check(self._worker_check)
         self.lifecycle = NodeLifecycle(self, ready=True, diagnostics=self.diagnostics)
 
     # ------------------------------------------------------------------ the stream
@@ -155,14 +172,38 @@ class ModalIdNode(Node):
             cols = [j for j, c in enumerate(block.channels) if c in self.wanted] or cols
         channels = [block.channels[j] for j in cols]
         try:
-            updates = self.core.push(block.stamp_s, block.data[:, cols], channels,
-                                     block.sample_rate_hz)
+            windows = self.core.push_windows(block.stamp_s, block.data[:, cols], channels,
+                                             block.sample_rate_hz)
         except Exception as exc:  # noqa: BLE001  (bad block: report, keep running)
             self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} block at {block.stamp_s:.3f} s: {exc}")
             return
-        for up in updates:
-            if up.modes or up.events:   # nothing confirmed yet (a mode gets its id when seen twice)
-                self.pub.publish(self._message(up, block.stamp_ns))
+        for job in windows:
+            self._submit(("window", job, block.stamp_ns))
+
+    def _submit(self, item) -> None:
+        with self.wake:
+            if item[0] == "window" and self.skip_when_busy:
+                waiting = [j for j in self.jobs if j[0] == "window"]
+                for j in waiting:                  # the newest window replaces one still waiting
+                    self.jobs.remove(j)
+                self.windows_skipped += len(waiting)
+                self.n_jobs -= len(waiting)
+            self.jobs.append(item)
+            self.n_jobs += 1
+            self.wake.notify()
+
+    def _identify_window(self, job, stamp_ns: int) -> None:
+        try:
+            up = self.core.identify(job)
+        except Exception as exc:  # noqa: BLE001  (a window the SSI refuses: report, keep running)
+            self.get_logger().error(f"{TOPIC_GUIDEWAY_ACCEL} window ending {stamp_ns * 1e-9:.3f} s: {exc}")
+            return
+        if up.modes or up.events:       # nothing confirmed yet (a mode gets its id when seen twice)
+            self.pub.publish(self._message(up, stamp_ns, job["window_s"]))
+
+    def _worker_check(self):
+        from maglev_ros.nodes._diagnostics import OK, Check
+        return Check(OK, "", {"windows_skipped": self.windows_skipped, "worker_queue": self.n_jobs})
 
     def _keep(self, topic: str, msg) -> None:
         """The block as received (the verb's reader converts units itself) for the recording's end."""
@@ -175,12 +216,12 @@ class ModalIdNode(Node):
                 f"the recording exceeds max_recording_mb ({self.collector.max_bytes / 1e6:g} MB): it is not "
                 f"kept and gets no whole-recording modes; the online estimates go on")
 
-    def _message(self, update, stamp_ns: int) -> ModalEstimate:
+    def _message(self, update, stamp_ns: int, window_s: float) -> ModalEstimate:
         out = ModalEstimate()
         stamp_to_msg(stamp_ns, out.header)
         out.header.frame_id = "guideway"
         out.method = METHOD_ONLINE
-        out.window_s = float(self.core.window_s)
+        out.window_s = float(window_s)
         new = {e.id for e in update.events if e.kind == "new"}
         for m in update.modes:
             out.modes.append(_mode_msg(m.id, "new" if m.id in new else "tracked", m))
@@ -223,23 +264,27 @@ class ModalIdNode(Node):
             return None
 
     def _recording_ended(self, bag) -> None:
-        self.core.reset()                # the next recording is tracked afresh
+        self.core.reset()                    # the next recording is tracked afresh
         if not self.recording_modes or not bag.has(TOPIC_GUIDEWAY_ACCEL):
             return
-        with self.lock:
-            self.n_jobs += 1
-        self.jobs.put(bag)
+        self._submit(("recording", bag, None))     # after the recording's last windows
 
     def busy(self) -> bool:
         return self.n_jobs > 0 or self.collector.waiting
 
     def _work(self) -> None:
         while True:
-            bag = self.jobs.get()
+            with self.wake:
+                while not self.jobs:
+                    self.wake.wait()
+                kind, what, stamp_ns = self.jobs.popleft()
             try:
-                self._identify(bag)
+                if kind == "window":
+                    self._identify_window(what, stamp_ns)
+                else:
+                    self._identify(what)
             except Exception as exc:  # noqa: BLE001  (a recording the verb refuses must not end the node)
-                self.get_logger().error(f"{bag.path}: whole-recording modes not identified: {exc}")
+                self.get_logger().error(f"{what.path}: whole-recording modes not identified: {exc}")
             finally:
                 with self.lock:
                     self.n_jobs -= 1

@@ -20,7 +20,10 @@ magnet) or of a parameter revision older than the accepted one (frame_id "twin r
 never judged; why the magnet layer waits is logged once per reason.
 The magnet layer takes tens of seconds; it runs in a worker thread on copies of the buffered
 window and the current parameters, without holding the node's lock (the node keeps receiving
-and updating the guideway meanwhile); only accepting and storing the result takes the lock.
+and updating the guideway meanwhile); only accepting and storing the result takes the lock. The
+guideway layer (seconds per fit) runs the same way on a worker of its own, one fit at a time: an
+estimate that arrives meanwhile waits, a newer one replaces it (counted on /diagnostics as
+``guideway_estimates_superseded``), so the ``maglev/modes`` callback never holds the streams back.
 These moving-window updates give the twin better parameters while a long recording still runs;
 they see a window, not the recording, so they are not what the recording says.
 
@@ -131,6 +134,12 @@ class UpdaterNode(Node):
         self.gate = BlockGate(self, self.diagnostics)
         self.lock = threading.Lock()
         self.worker: threading.Thread | None = None
+        # the guideway layer's worker (see _modes_work): running, the estimate waiting, superseded ones
+        self.modes_worker: threading.Thread | None = None
+        self.modes_running = False
+        self.modes_next = None
+        self.modes_superseded = 0
+        self.diagnostics.add_check(self._modes_check)
         from maglev_ros.bag_memory import RecordingCollector
         self.collector = RecordingCollector(RECORDED_TOPICS, name=f"{self.get_fully_qualified_name()} recording",
                                             max_bytes=float(v["max_recording_mb"]) * 1e6)
@@ -224,14 +233,51 @@ class UpdaterNode(Node):
             with self.lock:
                 if self.closed or not self._of_this_recording(stamp):
                     return
-                pub = self.core.on_modes(list(msg.modes), stamp)
+                job = self.core.take_modes_job(list(msg.modes), stamp)
                 self._drain_log()
+                if job is None:
+                    return
+                if self.modes_running:         # one fit at a time; the newest estimate waits
+                    self.modes_superseded += self.modes_next is not None
+                    self.modes_next = job
+                    return
+                self.modes_running = True
         except UserError as exc:
             self.get_logger().error(f"{TOPIC_MODES}: {exc}")
             return
-        if pub is not None:
-            self.get_logger().info(f"guideway update accepted: rev {pub.revision}")
-            self._publish(pub)
+        self.modes_worker = threading.Thread(target=self._modes_work, args=(job,), daemon=True)
+        self.modes_worker.start()
+
+    def _modes_work(self, job) -> None:
+        """The guideway layer's fits, one after the other, off the executor and without the lock (a
+        fit takes seconds: run in the ``maglev/modes`` callback it held back every stream of the
+        node); only accepting and storing a result takes the lock. An estimate that arrives while
+        a fit runs waits; a newer one replaces it (the newest modes are the ones to fit)."""
+        from maglev_ros.errors import UserError
+        while job is not None:
+            try:
+                result = self.core.compute_modes_update(job)
+            except UserError as exc:
+                self.get_logger().error(f"{TOPIC_MODES}: guideway layer: {exc}")
+                result = None
+            pub = None
+            with self.lock:
+                if result is not None and not self.closed:    # an ended recording: the end update decides
+                    pub = self.core.accept_modes_update(result)
+                    self._drain_log()
+                job, self.modes_next = self.modes_next, None
+                # the waiting estimate is fitted only if it still differs from the one just fitted
+                while job is not None and not self.core.changed(job["f"], job["std"]):
+                    job = None
+                self.modes_running = job is not None
+            if pub is not None:
+                self.get_logger().info(f"guideway update accepted: rev {pub.revision}")
+                self._publish(pub)
+
+    def _modes_check(self):
+        from maglev_ros.nodes._diagnostics import OK, Check
+        return Check(OK, "", {"guideway_fit_running": self.modes_running,
+                              "guideway_estimates_superseded": self.modes_superseded})
 
     def _of_this_recording(self, stamp_s: float) -> bool:
         """Whether an online estimate stamped ``stamp_s`` (the end of its window) was made from the
@@ -410,20 +456,21 @@ class UpdaterNode(Node):
     SHUTDOWN_WAIT_S = 3.0
 
     def unfinished_work(self) -> bool:
-        """At shutdown: wait up to ``SHUTDOWN_WAIT_S`` for a running magnet layer or recording-end
-        update; True if one is still running (its result is then discarded: the process must end
-        without the interpreter's teardown, which aborted in the worker's native code, 'terminate
-        called without an active exception', when the demo's graph stopped while the layer ran)."""
-        w = self.worker
+        """At shutdown: wait up to ``SHUTDOWN_WAIT_S`` for a running guideway or magnet layer or
+        recording-end update; True if one is still running (its result is then discarded: the
+        process must end without the interpreter's teardown, which aborted in the worker's native
+        code, 'terminate called without an active exception', when the demo's graph stopped while
+        the layer ran)."""
+        workers = [w for w in (self.worker, getattr(self, "modes_worker", None)) if w is not None]
 
         def ending() -> bool:
             return getattr(self, "n_end_jobs", 0) > 0
-        if (w is None or not w.is_alive()) and not ending():
+        if not any(w.is_alive() for w in workers) and not ending():
             return False
-        if w is not None:
+        for w in workers:
             w.join(self.SHUTDOWN_WAIT_S)
-        if (w is not None and w.is_alive()) or ending():
-            self.get_logger().warning("shutdown while the magnet layer or a recording-end update is running: "
+        if any(w.is_alive() for w in workers) or ending():
+            self.get_logger().warning("shutdown while a layer or a recording-end update is running: "
                                       "its result is discarded (the parameter history holds every accepted update)")
             return True
         return False

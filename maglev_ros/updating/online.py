@@ -226,6 +226,13 @@ class OnlineUpdater:
     def on_modes(self, modes: Sequence[Any], stamp_s: float | None = None) -> Publication | None:
         """A modal estimate (list of SSI-cov modes / ModalMode msgs / dicts). Returns the publication
         of an accepted update, or None (no material change, or rejected)."""
+        job = self.take_modes_job(modes, stamp_s)
+        return None if job is None else self.accept_modes_update(self.compute_modes_update(job))
+
+    def take_modes_job(self, modes: Sequence[Any], stamp_s: float | None = None) -> dict | None:
+        """The quick part of :meth:`on_modes`: the layer's target from the estimate, or None when
+        nothing changed materially. The job holds what the fit needs, so that
+        :meth:`compute_modes_update` can run without the caller's lock (a node's worker thread)."""
         if self.md is None:
             self.log.append("modes before metadata: ignored")
             return None
@@ -238,24 +245,38 @@ class OnlineUpdater:
             return None
         # the layer works around the CURRENT values (its ranges are relative to the span's design)
         nominal_span = [s for s in line_spans(self.md.raw["line"], self.nominal) if s.span_id == span.span_id][0]
-        up = self.guideway_layer.fit(nominal_span, tgt)
+        return {"span": span, "nominal_span": nominal_span, "target": tgt, "info": info, "f": f,
+                "std": np.asarray(tgt.std_frequency_hz, float), "stamp_s": stamp_s, "max_modes": self.max_modes, "layer": self.guideway_layer}
+
+    @staticmethod
+    def compute_modes_update(job: dict) -> dict:
+        """The guideway layer's fit of a :meth:`take_modes_job` job (the long part; touches no state)."""
+        span, f = job["span"], job["f"]
+        up = job["layer"].fit(job["nominal_span"], job["target"])
         cur_vals = [getattr(span.props, n) for n in GUIDEWAY_PARAMS]
-        f_cur = SpanModel(span, n_modes=self.max_modes + 2).modes(cur_vals)[0]
+        f_cur = SpanModel(span, n_modes=job["max_modes"] + 2).modes(cur_vals)[0]
         err_cur = float(np.max(np.abs(np.sort(f_cur)[:f.size] / f - 1))) if f.size else float("inf")
         err_up = float(np.max(np.abs(np.asarray(up.frequencies_updated_hz) / f - 1)))
+        return {**job, "up": up, "err_cur": err_cur, "err_up": err_up}
+
+    def accept_modes_update(self, result: dict) -> Publication | None:
+        """Accept (store, adopt) or reject a :meth:`compute_modes_update` result."""
+        up, f, span, info = result["up"], result["f"], result["span"], result["info"]
+        err_cur, err_up = result["err_cur"], result["err_up"]
         self._last_freqs = f
         if not err_up < err_cur and self.current:
             self.log.append(f"guideway update rejected: max frequency error {err_up:.4f} >= current {err_cur:.4f}")
             return None
-        space_lo = [s * (1 - self.guideway_layer.rel_range) for s in up.nominal]
-        space_hi = [s * (1 + self.guideway_layer.rel_range) for s in up.nominal]
+        rel_range = result["layer"].rel_range
+        space_lo = [s * (1 - rel_range) for s in up.nominal]
+        space_hi = [s * (1 + rel_range) for s in up.nominal]
         at_bound = [n for n, v, lo, hi in zip(up.names, up.values, space_lo, space_hi)
                     if v <= lo * (1 + 1e-6) or v >= hi * (1 - 1e-6)]
         params = {n: {"value": float(v), "unit": UNITS[n], "std": None if s is None else float(s),
                       "identifiable": bool(ok)}
                   for n, v, s, ok in zip(up.names, up.values, up.std, up.identifiable)}
-        data_used = {"kind": "modes", "stamp_s": stamp_s, "frequencies_hz": f.tolist(), "span": span.span_id,
-                     "matched_fe_modes": info["matched_fe_modes"]}
+        data_used = {"kind": "modes", "stamp_s": result["stamp_s"], "frequencies_hz": f.tolist(),
+                     "span": span.span_id, "matched_fe_modes": info["matched_fe_modes"]}
         fit = {"layer": "guideway", "max_freq_error_before": err_cur, "max_freq_error_after": err_up,
                "combinations": [c.to_dict() for c in up.identifiability.combinations if c.identifiable],
                "at_bound": at_bound, "n_model_evaluations": up.n_model_evaluations}

@@ -111,26 +111,25 @@ def run(args) -> int:
     require_ros()
     from maglev_ros.launcher import launch
     kwargs = launch_kwargs(args)
-    extra = []
+    from maglev_ros.launch_graph import extra_nodes, view_urls
+    # the verb's own flags named first; extra_nodes checks the same for monitor.launch.py
     if args.record:
-        from maglev_ros.launch_graph import recorder_spec
         from maglev_ros.outputs import check_file
         if not args.record.endswith(".mcap"):
             raise UserError(f"--record {args.record}: expected a file name ending in .mcap")
         check_file(args.record, "--record")
-        extra.append(recorder_spec(args.record, args.record_inputs, args.record_reliable,
-                                   sim_time=bool(args.bag)))
     elif args.record_inputs or args.record_reliable:
         raise UserError("--record-inputs / --record-reliable: given without --record FILE.mcap")
     if args.view:
-        from maglev_ros.launch_graph import view_node, view_urls
         if not 1 <= args.view_port <= 65535:
             raise UserError(f"--view-port: expected a port 1-65535, got {args.view_port}")
         import importlib.util
         if importlib.util.find_spec("foxglove") is None:
             raise UserError("--view: the live view needs foxglove-sdk, which is not installed: "
                             "pip install foxglove-sdk==0.30.3 (scripts/install does)")
-        extra.append(view_node(args.view_host, args.view_port))
+    # the same nodes as monitor.launch.py's record:=/view:= arguments
+    extra = extra_nodes(args.record, args.record_inputs, args.record_reliable, sim_time=bool(args.bag),
+                        view=args.view, view_host=args.view_host, view_port=args.view_port)
     history = Path(kwargs["overrides"]["updater"]["history_path"])
     try:
         history.parent.mkdir(parents=True, exist_ok=True)

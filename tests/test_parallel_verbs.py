@@ -1,0 +1,106 @@
+"""The expensive verbs' independent work on executors: the same results serially, on a 2-worker local
+pool and on a Dask client (diagnose: the hypotheses' screening and fits; update: the surrogate's
+training simulations). A small generated case keeps it cheap: one span, a coarse twin, no rail
+reconstruction, two physics hypotheses (a girder one and a levitation one, whose null model is
+computed in the workers) and every sensor/ambient one."""
+import dataclasses
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+from discrepancy_cases import make_case  # noqa: E402
+
+from maglev_ros.discrepancy.diagnose import DiagnoseConfig  # noqa: E402
+from maglev_ros.discrepancy.pipeline.calibrate import calibrate  # noqa: E402
+from maglev_ros.discrepancy.pipeline.fit import fit_hypotheses  # noqa: E402
+from maglev_ros.discrepancy.pipeline.localize import localize  # noqa: E402
+from maglev_ros.discrepancy.pipeline.propose import propose  # noqa: E402
+from maglev_ros.errors import UserError  # noqa: E402
+from maglev_ros.parallel import SERIAL, DaskExecutor, LocalPool, executor_from_options, one_blas_thread  # noqa: E402
+
+FAST = {"n_el": 20, "noise_colour": "pink", "ambient_s": 8.0, "aa": ("cheby", 0.38), "body_sensors": False}
+CFG = DiagnoseConfig(n_top=6, fit_every_effect=False, irregularity=False, base_max_nfev=2, base_refit_nfev=1,
+                     n_elements=8, dt_max_s=2e-3)
+
+
+@pytest.fixture(scope="module")
+def pool():
+    with LocalPool(2) as p:
+        yield p
+
+
+@pytest.fixture(scope="module")
+def staged():
+    case = make_case("cd", "control_delay", {"lag_s": 0.006}, seed=51, speeds=(24.0, 30.0), variant=FAST, n_spans=1)
+    with one_blas_thread():
+        cal = calibrate(case.passes, case.ambient, CFG)
+        loc = localize(cal, case.ambient, CFG)
+        prop = propose(cal, loc, CFG)
+    keep = [next(h for h in prop.fitted_in_full if h.effect == e) for e in ("girder_stiffness_loss", "control_delay")]
+    return cal, loc, dataclasses.replace(prop, fitted_in_full=keep)
+
+
+def _square(x):
+    return x * x
+
+
+def test_executors_keep_the_order_and_report_each_item(pool):
+    seen = []
+    assert pool.map(_square, range(7), done=seen.append) == [x * x for x in range(7)]
+    assert sorted(seen) == list(range(7))
+    # lambdas travel too (cloudpickle): the catalogue's hypotheses carry them
+    assert pool.map(lambda x: -x, [1, 2]) == [-1, -2]
+    assert SERIAL.map(_square, [3]) == [9] and pool.map(_square, []) == []
+
+
+def test_executor_options_are_checked():
+    assert executor_from_options(None, None) is SERIAL and executor_from_options(1, None) is SERIAL
+    with pytest.raises(UserError, match="--workers"):
+        executor_from_options(0, None)
+    with pytest.raises(UserError, match="one of them"):
+        executor_from_options(2, "tcp://127.0.0.1:1")
+
+
+def _screening(prop):
+    return [(float(r), h.label) for r, h in prop.screened], prop.untestable
+
+
+def _fits_doc(fr) -> str:
+    """Every fit, verdict and reference model as JSON (what the later stages read)."""
+    fits = [{"label": hf.hyp.label, "params": hf.params.tolist(), "cal_delta": hf.cal_delta.tolist(),
+             "rss": hf.rss, "n_sims": hf.n_sims, "profile": list(hf.profile), "spec": repr(hf.spec),
+             "verdict": dataclasses.asdict(v), "delta_bic": d, "local": fr.local_ev.get(id(hf)),
+             "own_rail": id(hf) in fr.own_rail} for hf, v, d in fr.fits]
+    nulls = sorted((repr(k), dataclasses.asdict(n)) for k, n in fr.evidence.nulls.items())
+    return json.dumps({"fits": fits, "untestable": fr.untestable, "nulls": nulls,
+                       "test0": sorted((repr(k), v) for k, v in fr.evidence.test0.items())}, sort_keys=True)
+
+
+def test_screening_is_the_same_on_a_local_pool(staged, pool):
+    cal, loc, prop = staged
+    with one_blas_thread():
+        serial = propose(cal, loc, CFG)
+    assert _screening(propose(cal, loc, CFG, executor=pool)) == _screening(serial)
+
+
+def test_hypothesis_fits_are_the_same_serially_and_on_two_workers(staged, pool):
+    cal, loc, prop = staged
+    with one_blas_thread():
+        serial = fit_hypotheses(cal, loc, prop, CFG)
+    parallel = fit_hypotheses(cal, loc, prop, CFG, executor=pool)
+    doc = _fits_doc(serial)
+    assert json.loads(doc)["nulls"], "the levitation hypothesis' null model was computed"
+    assert _fits_doc(parallel) == doc
+
+
+def test_screening_is_the_same_on_a_dask_client(staged):
+    distributed = pytest.importorskip("distributed")
+    cal, loc, prop = staged
+    with one_blas_thread():
+        serial = propose(cal, loc, CFG)
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        assert _screening(propose(cal, loc, CFG, executor=DaskExecutor(client))) == _screening(serial)

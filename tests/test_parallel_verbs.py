@@ -104,3 +104,30 @@ def test_screening_is_the_same_on_a_dask_client(staged):
         serial = propose(cal, loc, CFG)
     with distributed.Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
         assert _screening(propose(cal, loc, CFG, executor=DaskExecutor(client))) == _screening(serial)
+
+
+# --- update: the magnet layer's surrogate samples -------------------------------------------------
+def _magnet_doc(up) -> str:
+    doc = up.to_dict()
+    doc.pop("wall_time_s")                      # the only timing field
+    return json.dumps(doc, sort_keys=True, default=lambda a: np.asarray(a).tolist())
+
+
+def test_magnet_layer_samples_are_the_same_serially_and_on_two_workers(pool):
+    from updating_data import LINE, random_truth, simulate_measurement, twin_config, with_guideway
+    from maglev_ros.updating.magnet_layer import MagnetLayer, make_evidence
+    from maglev_ros.updating.parameters import GUIDEWAY_PARAMS
+    nom = twin_config()
+    tcfg = random_truth(0).config(nom)
+    gcfg = with_guideway(nom, **{k: getattr(tcfg.guideway, k) for k in GUIDEWAY_PARAMS})
+    m = simulate_measurement(tcfg, 6.944, 3, 2.0, start_position_m=5.0)
+    ev = make_evidence(m["time_s"], m["accel"], range(1, 9), m["time_s"], m["position_m"], m["speed_mps"],
+                       m["true_irregularity"], m["offsets"], band_hz=(1.0, 80.0), model_fs_hz=500.0)
+
+    def layer():
+        return MagnetLayer(n_samples=8, polish_max_nfev=2, n_particles=10, n_iterations=5, model_error=False)
+    with one_blas_thread():
+        serial = layer().fit(gcfg, LINE, [ev])
+    parallel = layer().fit(gcfg, LINE, [ev], executor=pool)
+    assert serial.n_model_evaluations >= 9       # the nominal point and the 8 samples at least
+    assert _magnet_doc(parallel) == _magnet_doc(serial)

@@ -25,7 +25,7 @@ import contextlib
 import hashlib
 import multiprocessing
 import os
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable
 
 from maglev_ros.errors import UserError
 
@@ -105,8 +105,16 @@ def _init_worker() -> None:
         os.environ[var] = "1"
 
 
+def _cloudpickle():
+    try:
+        import cloudpickle
+    except ImportError:
+        raise UserError("--workers/--scheduler: cloudpickle is not installed (pip install cloudpickle)") from None
+    return cloudpickle
+
+
 def _pack(fn) -> tuple[str, bytes]:
-    import cloudpickle
+    cloudpickle = _cloudpickle()
     fn_bytes = cloudpickle.dumps(fn)
     return hashlib.sha1(fn_bytes).hexdigest(), fn_bytes
 
@@ -133,8 +141,8 @@ class LocalPool(Executor):
         return self._pool
 
     def map(self, fn, items, done=None) -> list:
-        import cloudpickle
         from concurrent.futures import as_completed
+        cloudpickle = _cloudpickle()
         items = list(items)
         if not items:
             return []
@@ -183,8 +191,8 @@ class DaskExecutor(Executor):
         self.workers = max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()))
 
     def map(self, fn, items, done=None) -> list:
-        import cloudpickle
         from distributed import as_completed
+        cloudpickle = _cloudpickle()
         items = list(items)
         if not items:
             return []
@@ -229,13 +237,3 @@ def executor_from_options(workers: int | None, scheduler: str | None) -> Executo
         return SERIAL if workers == 1 else LocalPool(workers)
     return SERIAL
 
-
-def chunks(items: Sequence, n: int) -> list[list]:
-    """``items`` in ``n`` contiguous runs as even as possible (order kept)."""
-    k, r = divmod(len(items), max(1, n))
-    out, i = [], 0
-    for j in range(max(1, n)):
-        m = k + (j < r)
-        out.append(list(items[i:i + m]))
-        i += m
-    return [c for c in out if c]

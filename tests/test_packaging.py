@@ -48,7 +48,9 @@ MESSAGE_DEPENDENCIES = {"geometry_msgs"}
 # line when it is missing)
 # npTDMS, asammdf: the import's TDMS and MDF4 readers, imported when such a file is read, with one
 # line saying how to get them when missing; no rosdep key in rosdistro (2026-08), pip brings them
-OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove", "nptdms", "asammdf"}
+# cloudpickle, distributed: only for diagnose/update --workers / --scheduler (maglev_ros/parallel.py),
+# imported when asked for, with one line saying how to get them when missing
+OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove", "nptdms", "asammdf", "cloudpickle", "distributed"}
 # what pip installs for the science core; the ROS side comes from requirements.txt
 PIP_NAME = {"yaml": "pyyaml"}
 

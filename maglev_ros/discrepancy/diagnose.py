@@ -76,8 +76,8 @@ class Diagnoser:
             progress: Progress = NULL, executor: Executor = SERIAL) -> Diagnosis:
         """``executor``: where the independent hypotheses are screened and fitted
         (:mod:`maglev_ros.parallel`; the report is the same wherever they run). BLAS runs at one
-        thread here too: two threads fought over the twin's small eigenproblems (sample bags: 4:07
-        wall, 134 s CPU; 2:30 and 100 s with one, the same report)."""
+        thread here too: two threads fight over the twin's 34x34 eigenproblems (sample bags, shared
+        2-core machine: 104 s CPU with two, 69 s with one, the same report.json)."""
         with one_blas_thread():
             return self._fit(passes, ambient, progress, executor)
 

@@ -485,8 +485,11 @@ class MagnetLayer:
 
         full_cache: dict[bytes, list[np.ndarray]] = {}
 
+        def key_of(theta) -> bytes:
+            return np.round(np.asarray(theta, float), 12).tobytes()
+
         def full_theta(theta):
-            key = np.round(np.asarray(theta, float), 12).tobytes()
+            key = key_of(theta)
             if key not in full_cache:
                 full_cache[key] = [m.predict_full(space.from_theta(theta)) for m in progress.steps(models)]
             return full_cache[key]
@@ -500,7 +503,7 @@ class MagnetLayer:
         cache: dict[bytes, np.ndarray] = {}
 
         def pred_theta(theta):
-            key = np.round(np.asarray(theta, float), 12).tobytes()
+            key = key_of(theta)
             if key not in cache:
                 cache[key] = np.concatenate([F[m.ev.compare] for F, m in zip(full_theta(theta), models)])
             return cache[key]
@@ -515,8 +518,7 @@ class MagnetLayer:
             # the samples' coupled simulations are independent: run them on the executor, then read
             # them from the cache as before (the serial loop is the same computation)
             thetas = [space.to_theta(x) for x in Xs]
-            todo = list({np.round(np.asarray(t, float), 12).tobytes(): t for t in thetas
-                         if np.round(np.asarray(t, float), 12).tobytes() not in full_cache}.items())
+            todo = list({key_of(t): t for t in thetas if key_of(t) not in full_cache}.items())
             sims = executor.map(_SampleSims(models, space), [t for _, t in todo],
                                 done=lambda i: progress.advance(len(models)))
             for (key, _), full in zip(todo, sims):

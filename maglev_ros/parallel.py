@@ -8,8 +8,9 @@ fits, the surrogate's training simulations); with none they run :class:`Serial`,
 
 - :class:`Serial`: the loop in this process (the default: nothing is pickled).
 - :class:`LocalPool`: ``concurrent.futures.ProcessPoolExecutor`` with forkserver (spawn where there
-  is none) workers, BLAS at one thread in each (two BLAS threads fought over the twin's 34x34
-  eigenproblems: 4:07 wall for 2:30 with one), numba's on-disk cache loaded read-only as in any process.
+  is none) workers, BLAS at one thread in each (two BLAS threads fight over the twin's 34x34
+  eigenproblems: 30-35 % more CPU for the same report), numba's on-disk cache loaded read-only as
+  in any process.
 - :class:`DaskExecutor`: a ``dask.distributed.Client`` (``client.map`` + ``client.gather``).
 
 Work items and functions are serialised with cloudpickle (the catalogue's hypotheses carry lambdas
@@ -100,7 +101,7 @@ def _call(token: str, fn_bytes: bytes, item_bytes: bytes):
 
 
 def _init_worker() -> None:
-    # every library's thread pool at one thread for the life of the worker (torch, numba too)
+    # libraries a work item imports later (torch) start at one thread; BLAS is limited per item
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[var] = "1"
 

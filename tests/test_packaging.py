@@ -55,6 +55,9 @@ OPTIONAL_WITHOUT_KEY = {"threadpoolctl", "foxglove", "nptdms", "asammdf"}
 PIP_ONLY_WITHOUT_KEY = {"dask", "distributed", "pyarrow"}
 # what pip installs for the science core; the ROS side comes from requirements.txt
 PIP_NAME = {"yaml": "pyyaml"}
+# cloudpickle: diagnose/update --workers (maglev_ros/parallel.py), imported when asked for, with one
+# line saying how to get it when missing; no rosdep key found
+PIP_ONLY_WITHOUT_KEY = PIP_ONLY_WITHOUT_KEY | {"cloudpickle"}
 
 
 def _third_party_imports(paths) -> set[str]:

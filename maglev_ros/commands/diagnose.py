@@ -24,6 +24,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="DIR", required=True, help="output directory (report.json, report.html)")
     p.add_argument("--no-html", action="store_true", help="write report.json only")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (stage, count, ETA)")
+    from maglev_ros.parallel import add_executor_arguments
+    add_executor_arguments(p)
 
 
 def run(args) -> int:
@@ -31,9 +33,10 @@ def run(args) -> int:
     for b in [*args.passes, *([args.ambient] if args.ambient else [])]:
         if not Path(b).exists():     # a one-line error before any progress line
             raise UserError(f"{b}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
+    from maglev_ros.parallel import executor_from_options
     outputs.check_dir(args.out, "--out")        # before the diagnosis, not after
-    with for_cli(args.quiet, "diagnose") as progress:
-        d, out = _diagnose(args, progress)
+    with executor_from_options(args.workers, args.scheduler) as executor, for_cli(args.quiet, "diagnose") as progress:
+        d, out = _diagnose(args, progress, executor)
     rep = d.to_dict()
     print(f"fit before {rep['fit_before']['nrmse']:.3f}, after {rep['fit_after']['nrmse']:.3f}; "
           f"{len(rep['mismatches'])} mismatch(es); missing physics: "
@@ -42,7 +45,7 @@ def run(args) -> int:
     return 0
 
 
-def _diagnose(args, progress):
+def _diagnose(args, progress, executor):
     from maglev_ros.discrepancy.diagnose import diagnose
     from maglev_ros.discrepancy.recording import load_recording
     progress.stage("load recordings", total=len(args.passes) + bool(args.ambient))
@@ -59,7 +62,7 @@ def _diagnose(args, progress):
     for h in health:
         for line in h.lines():
             print(f"maglev-ros diagnose: {line}", file=sys.stderr)
-    d = diagnose(passes, ambient, progress=progress)
+    d = diagnose(passes, ambient, progress=progress, executor=executor)
     doc = {**d.to_dict(), "health": [h.to_dict() for h in health]}
     # report.json and report.html replace the earlier pair together, or neither does
     with outputs.Batch() as batch:

@@ -39,6 +39,8 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of sampling and swarms (default 0)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress on stderr (stage, count, ETA) and no summary table on stdout")
+    from maglev_ros.parallel import add_executor_arguments
+    add_executor_arguments(p)
 
 
 def run(args) -> int:
@@ -64,11 +66,13 @@ def run(args) -> int:
         outputs.check_file(args.details, "--details")
     if args.plot:
         outputs.check_dir(args.plot, "--plot")
-    with for_cli(args.quiet, "update") as progress:
+    from maglev_ros.parallel import executor_from_options
+    with executor_from_options(args.workers, args.scheduler) as executor, for_cli(args.quiet, "update") as progress:
         # the pipeline's messages go to stderr with the progress: stdout stays the result
         gl, ml = update_layers(args.samples, args.polish_evals, args.swarm, args.seed)
         up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
-                              guideway_layer=gl, magnet_layer=ml, progress=progress)
+                              guideway_layer=gl, magnet_layer=ml, progress=progress,
+                              executor=executor)
         for h in up.provenance["health"]:
             for line in report_lines(h):
                 print(f"maglev-ros update: {line}", file=sys.stderr)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from maglev_ros.errors import UserError
+from maglev_ros.parallel import SERIAL, Executor, one_blas_thread
 from maglev_ros.progress import NULL, Progress
 
 from .acceptance import AcceptanceConfig
@@ -72,7 +73,15 @@ class Diagnoser:
 
     # ------------------------------------------------------------------------------------
     def fit(self, passes: Sequence[Recording], ambient: Recording | None = None,
-            progress: Progress = NULL) -> Diagnosis:
+            progress: Progress = NULL, executor: Executor = SERIAL) -> Diagnosis:
+        """``executor``: where the independent hypotheses are screened and fitted
+        (:mod:`maglev_ros.parallel`; the report is the same wherever they run). BLAS runs at one
+        thread here too: two threads fight over the twin's 34x34 eigenproblems (sample bags, shared
+        2-core machine: 104 s CPU with two, 69 s with one, the same report.json)."""
+        with one_blas_thread():
+            return self._fit(passes, ambient, progress, executor)
+
+    def _fit(self, passes, ambient, progress, executor) -> Diagnosis:
         if not passes:
             raise UserError("--pass: at least one pass recording is needed")
         for p in passes:
@@ -80,13 +89,14 @@ class Diagnoser:
         cfg = self.config
         cal = calibrate(passes, ambient, cfg, progress)              # what the data measure, then E, kb, kp, kv
         loc = localize(cal, ambient, cfg, progress)                  # where twin and recordings differ
-        prop = propose(cal, loc, cfg, progress)                      # which physics to fit in full
-        fr = fit_hypotheses(cal, loc, prop, cfg, progress)           # each fitted and measured on held-out data
+        prop = propose(cal, loc, cfg, progress, executor)            # which physics to fit in full
+        fr = fit_hypotheses(cal, loc, prop, cfg, progress, executor) # each fitted and measured on held-out data
         jd = judge_hypotheses(cal, loc, fr, cfg, progress)           # the best against each other
         dc = discover_stage(cal, loc, prop, jd, cfg, progress)       # what the catalogue does not hold
         return build_report(cal, loc, prop, fr, jd, dc, ambient, cfg, progress)
 
 
 def diagnose(passes: Sequence[Recording], ambient: Recording | None = None,
-             config: DiagnoseConfig = DiagnoseConfig(), progress: Progress = NULL) -> Diagnosis:
-    return Diagnoser(config).fit(passes, ambient, progress)
+             config: DiagnoseConfig = DiagnoseConfig(), progress: Progress = NULL,
+             executor: Executor = SERIAL) -> Diagnosis:
+    return Diagnoser(config).fit(passes, ambient, progress, executor)

@@ -63,6 +63,7 @@ are a few lines of algebra specific to this residual.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -74,6 +75,7 @@ from scipy import signal
 from scipy.optimize import least_squares
 
 from maglev_ros.errors import UserError
+from maglev_ros.parallel import SERIAL, Executor
 from maglev_ros.progress import NULL, Progress
 from maglev_ros.twin.design import TwinConfig, with_levitation
 from maglev_ros.updating.grp import grey_relational_projection
@@ -423,6 +425,18 @@ def _expression(c: np.ndarray, names: Sequence[str]) -> str:
     return " ".join(parts)
 
 
+@dataclass(frozen=True, eq=False)
+class _SampleSims:
+    """One surrogate sample's coupled simulations, every pass (an executor's work item): on copies
+    of the models, whose evaluation counts the caller keeps."""
+    models: list
+    space: object
+
+    def __call__(self, theta) -> list[np.ndarray]:
+        values = self.space.from_theta(theta)
+        return [copy.copy(m).predict_full(values) for m in self.models]
+
+
 class MagnetLayer:
     """fit(config_with_updated_guideway, line, passes) -> MagnetUpdate.
 
@@ -452,7 +466,10 @@ class MagnetLayer:
         self.model_error, self.n_bands, self.n_surrogates = bool(model_error), int(n_bands), int(n_surrogates)
         self.profile_amplitude_rel_std, self.timing_std_s = float(profile_amplitude_rel_std), float(timing_std_s)
 
-    def fit(self, config: TwinConfig, line, passes: Sequence[PassEvidence], progress: Progress = NULL) -> MagnetUpdate:
+    def fit(self, config: TwinConfig, line, passes: Sequence[PassEvidence], progress: Progress = NULL,
+            executor: Executor = SERIAL) -> MagnetUpdate:
+        """``executor``: where the surrogate's training simulations run (:mod:`maglev_ros.parallel`;
+        the result is the same wherever they run)."""
         t_start = time.perf_counter()
         if not passes:
             raise UserError("magnet layer: expected at least one pass with magnet accelerations")
@@ -468,8 +485,11 @@ class MagnetLayer:
 
         full_cache: dict[bytes, list[np.ndarray]] = {}
 
+        def key_of(theta) -> bytes:
+            return np.round(np.asarray(theta, float), 12).tobytes()
+
         def full_theta(theta):
-            key = np.round(np.asarray(theta, float), 12).tobytes()
+            key = key_of(theta)
             if key not in full_cache:
                 full_cache[key] = [m.predict_full(space.from_theta(theta)) for m in progress.steps(models)]
             return full_cache[key]
@@ -483,7 +503,7 @@ class MagnetLayer:
         cache: dict[bytes, np.ndarray] = {}
 
         def pred_theta(theta):
-            key = np.round(np.asarray(theta, float), 12).tobytes()
+            key = key_of(theta)
             if key not in cache:
                 cache[key] = np.concatenate([F[m.ev.compare] for F, m in zip(full_theta(theta), models)])
             return cache[key]
@@ -495,6 +515,16 @@ class MagnetLayer:
             from maglev_ros.updating.surrogate import train_and_score
             U = optimal_lhs(self.n_samples, space.dim, seed=self.seed)
             Xs = np.array([space.from_unit(u) for u in U])
+            # the samples' coupled simulations are independent: run them on the executor, then read
+            # them from the cache as before (the serial loop is the same computation)
+            thetas = [space.to_theta(x) for x in Xs]
+            todo = list({key_of(t): t for t in thetas if key_of(t) not in full_cache}.items())
+            sims = executor.map(_SampleSims(models, space), [t for _, t in todo],
+                                done=lambda i: progress.advance(len(models)))
+            for (key, _), full in zip(todo, sims):
+                full_cache[key] = full
+            for m in models:
+                m.n_evaluations += len(todo)
             Y = np.array([[nrmse(p, meas), 1.0 - corr(p, meas)] for p in (pred_theta(space.to_theta(x)) for x in Xs)])
             Y = np.maximum(Y, 1e-9)
             progress.stage("magnet layer: surrogate training")

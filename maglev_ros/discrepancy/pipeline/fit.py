@@ -17,6 +17,7 @@ from typing import Sequence
 
 import numpy as np
 
+from maglev_ros.parallel import SERIAL, Executor
 from maglev_ros.progress import NULL, Progress
 
 from .. import catalogue as cat
@@ -132,29 +133,44 @@ class Fits:
     bic0: float                         # the calibrated twin's training BIC
 
 
-def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
-                   progress: Progress = NULL) -> Fits:
-    base, rd_train, rd_test = cal.base, cal.data.rd_train, cal.data.rd_test
-    phys, cheap, physics = prop.fitted_in_full, prop.cheap, prop.simulated
-    drops, rd_amb = loc.dropouts, loc.ambient
-    tried = list(prop.untestable)
-    cands = phys + cheap
-    fits: list[tuple[HypFit, Verdict, float]] = []
-    n_eff = max(10, base.r0.size // 2)
-    rss0 = float(base.r0 @ base.r0)
-    bic0 = bic(rss0, n_eff, 0)
-    held_before, _ = fit_report(base.spec, rd_test)
-    local_ev: dict[int, tuple[float, float]] = {}
-    own_rail: dict[int, list[RecData]] = {}
-    ev = Evidence(cal, config.irregularity and any(p.irregularity is not None for p in cal.data.passes))
-    where, held_of = ev.where, ev.held_of
-    # two stages: physics takes a simulation per step (10-150 s each), the rest ~1 s (one ETA misled)
-    progress.stage(f"fit {len(phys)} of {len(physics)} physics hypotheses (simulated)", total=len(phys))
-    for h in cands:
-        if cheap and h is cheap[0]:
-            progress.stage(f"fit {len(cheap) + len(drops)} sensor and ambient hypotheses",
-                           total=len(cheap) + len(drops))
-        progress.advance(0, note=h.label)
+@dataclass(eq=False)
+class _Outcome:
+    """What fitting one hypothesis gives: its fit and first verdict, or why it failed, its held-out
+    NRMSE where it acts, the passes with its own rail, and the reference models it computed (kept
+    by the caller: a worker's copy of the evidence is lost with the worker)."""
+    fit: tuple | None = None            # (HypFit, Verdict, delta BIC)
+    failed: dict | None = None          # {effect, label, why}
+    local_ev: tuple | None = None       # (before, after)
+    own_rail: list | None = None
+    nulls: dict = field(default_factory=dict)
+    halves: dict = field(default_factory=dict)
+    test0: dict = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class _FitOne:
+    """Fits one hypothesis (a work item of an executor: a pure function of its inputs; the twin's
+    simulation cache only saves time)."""
+    cal: Calibration
+    rd_amb: RecData | None
+    config: object
+    ev: Evidence
+    held_before: float
+    n_eff: int
+    bic0: float
+
+    def __call__(self, h) -> _Outcome:
+        out = self._fit(h)
+        ev = self.ev
+        out.nulls, out.halves, out.test0 = dict(ev.nulls), dict(ev.halves), dict(ev.test0)
+        return out
+
+    def _fit(self, h) -> _Outcome:
+        cal, config, ev = self.cal, self.config, self.ev
+        base, rd_train, rd_test, rd_amb = cal.base, cal.data.rd_train, cal.data.rd_test, self.rd_amb
+        held_before, n_eff, bic0 = self.held_before, self.n_eff, self.bic0
+        where, held_of = ev.where, ev.held_of
+        out = _Outcome()
         try:
             if h.effect == "ambient_excitation" and rd_amb is not None:
                 # the ambient recording is direct evidence of vibration without a vehicle
@@ -166,9 +182,8 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
             else:
                 hf = fit_hypothesis(base, h, rd_train)
         except Exception as exc:
-            tried.append({"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"})
-            progress.advance(note=h.label)
-            continue
+            out.failed = {"effect": h.effect, "label": h.label, "why": f"fit failed ({exc})"}
+            return out
         rd_train_h, rd_test_h = rd_train, rd_test
         dbic = None
         if ev.rebuild and h.category in VEHICLE_WIDE:
@@ -180,7 +195,7 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
             # its training misfit too
             own_set = cal.prepare(hf.spec, floor_spec=base.spec, log=None)
             own, rd_train_h, rd_test_h = own_set.rd_all, own_set.rd_train, own_set.rd_test
-            own_rail[id(hf)] = own
+            out.own_rail = own
             r_own = safe_residual(hf.spec, rd_train_h)
             hf.rss = float(r_own @ r_own) if r_own is not None else math.inf
         null = None
@@ -196,10 +211,9 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
             dbic = bic(hf.rss, n_eff, hf.k) - bic0
         if dbic > 0 and h.effect == "sensor_error":
             # clearly nothing: skip the held-out simulation
-            fits.append((hf, judge(held_before, held_before, dbic, h.plausible(hf.params), 0.0,
-                                   config.acceptance), dbic))
-            progress.advance(note=h.label)
-            continue
+            out.fit = (hf, judge(held_before, held_before, dbic, h.plausible(hf.params), 0.0,
+                                 config.acceptance), dbic)
+            return out
         held_after, _ = fit_report(hf.spec, rd_test_h)
         # the held-out fit is also reported where the extension acts (its channels): judged
         # there, a 9 % scale "error" of one guideway sensor on a clean case (model error of
@@ -208,7 +222,7 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
         if at:
             before = (null.heldout_nrmse if null is not None
                       else fit_report(base.spec, held_of(h, rd_train, rd_test), at)[0])
-            local_ev[id(hf)] = (before, fit_report(hf.spec, held_of(h, rd_train_h, rd_test_h), at)[0])
+            out.local_ev = (before, fit_report(hf.spec, held_of(h, rd_train_h, rd_test_h), at)[0])
         col = 0.0
         if h.needs_sim:
             jcol = residual_vector(h.apply(base.spec, np.array(h.trial)), rd_train) - base.r0
@@ -221,7 +235,7 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
             gains = dict(reference="the calibrated twin with kp, kv re-fitted there",
                          absorbed_by="the levitation gains kp, kv re-fitted on these channels",
                          separated_by=cat.SEPARATED_BY.get(h.effect)) if null is not None else {}
-            v = judge_where_it_acts(held_before, held_after, *local_ev[id(hf)], dbic, h.plausible(hf.params),
+            v = judge_where_it_acts(held_before, held_after, *out.local_ev, dbic, h.plausible(hf.params),
                                     col, config.acceptance,
                                     ev.held_llr(hf.spec, at, held_of(h, rd_train_h, rd_test_h),
                                                 null.heldout if null is not None else None),
@@ -231,8 +245,49 @@ def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
         else:
             v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, config.acceptance,
                       ev.held_llr(hf.spec))
-        fits.append((hf, v, dbic))
-        progress.advance(note=h.label)
+        out.fit = (hf, v, dbic)
+        return out
+
+
+def fit_hypotheses(cal: Calibration, loc: Localization, prop: Proposal, config,
+                   progress: Progress = NULL, executor: Executor = SERIAL) -> Fits:
+    """Every proposed hypothesis fitted and given its first verdict; the hypotheses are independent
+    work items of ``executor`` (the results do not depend on where they run)."""
+    base, rd_train, rd_test = cal.base, cal.data.rd_train, cal.data.rd_test
+    phys, cheap, physics = prop.fitted_in_full, prop.cheap, prop.simulated
+    drops, rd_amb = loc.dropouts, loc.ambient
+    tried = list(prop.untestable)
+    fits: list[tuple[HypFit, Verdict, float]] = []
+    n_eff = max(10, base.r0.size // 2)
+    rss0 = float(base.r0 @ base.r0)
+    bic0 = bic(rss0, n_eff, 0)
+    held_before, _ = fit_report(base.spec, rd_test)
+    local_ev: dict[int, tuple[float, float]] = {}
+    own_rail: dict[int, list[RecData]] = {}
+    ev = Evidence(cal, config.irregularity and any(p.irregularity is not None for p in cal.data.passes))
+    one = _FitOne(cal, rd_amb, config, ev, held_before, n_eff, bic0)
+    # two stages: physics takes a simulation per step (10-150 s each), the rest ~1 s (one ETA misled)
+    stages = [(f"fit {len(phys)} of {len(physics)} physics hypotheses (simulated)", phys, len(phys))]
+    if cheap:
+        stages.append((f"fit {len(cheap) + len(drops)} sensor and ambient hypotheses", cheap,
+                       len(cheap) + len(drops)))
+    for name, hyps, total in stages:
+        progress.stage(name, total=total)
+        outs = executor.map(one, hyps, done=lambda i, hyps=hyps: progress.advance(note=hyps[i].label))
+        for o in outs:
+            # the reference models a worker computed (the same values wherever computed)
+            for mine, theirs in ((ev.nulls, o.nulls), (ev.halves, o.halves), (ev.test0, o.test0)):
+                for k, val in theirs.items():
+                    mine.setdefault(k, val)
+            if o.failed is not None:
+                tried.append(o.failed)
+                continue
+            fits.append(o.fit)
+            hf = o.fit[0]
+            if o.own_rail is not None:
+                own_rail[id(hf)] = o.own_rail
+            if o.local_ev is not None:
+                local_ev[id(hf)] = o.local_ev
     if drops and not cheap:
         progress.stage(f"fit {len(drops)} sensor and ambient hypotheses", total=len(drops))
     for (n, t0, t1, val) in drops:

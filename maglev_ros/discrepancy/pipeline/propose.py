@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from maglev_ros.parallel import SERIAL, Executor
 from maglev_ros.progress import NULL, Progress
 
 from .. import catalogue as cat
@@ -36,7 +37,21 @@ class Proposal:
     unmeasured_spans: list[str]        # spans no guideway sensor measures: their structure is untested
 
 
-def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL) -> Proposal:
+@dataclass(frozen=True, eq=False)
+class _ScreenOne:
+    """Screens one hypothesis (an executor's work item): (RSS, None) or (None, why it failed)."""
+    base: BaseFit
+    rd_train: list
+
+    def __call__(self, h) -> tuple[float | None, str | None]:
+        try:
+            return screen(self.base, h, self.rd_train), None
+        except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
+            return None, f"twin failed at trial value ({exc})"
+
+
+def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL,
+            executor: Executor = SERIAL) -> Proposal:
     base, rd_train = cal.base, cal.data.rd_train
     hyps = catalogue_hypotheses(base, rd_train, zones=config.girder_zones)
     tried = []
@@ -44,12 +59,12 @@ def propose(cal: Calibration, loc: Localization, config, progress: Progress = NU
     cheap = [h for h in hyps if not h.needs_sim]
     screened = []
     progress.stage("screen catalogue hypotheses", total=len(physics))
-    for h in physics:
-        try:
-            screened.append((screen(base, h, rd_train), h))
-        except Exception as exc:     # an unstable twin at the trial value: hypothesis untestable
-            tried.append({"effect": h.effect, "label": h.label, "why": f"twin failed at trial value ({exc})"})
-        progress.advance(note=h.label)
+    outs = executor.map(_ScreenOne(base, rd_train), physics, done=lambda i: progress.advance(note=physics[i].label))
+    for h, (rss, why) in zip(physics, outs):
+        if why is None:
+            screened.append((rss, h))
+        else:
+            tried.append({"effect": h.effect, "label": h.label, "why": why})
     screened.sort(key=lambda t: t[0])
     # the best-screened hypotheses, and the best of every further effect (screening at a trial value
     # ranks effects with very different footprints: a bearing at 30 % of its stiffness ranked below

@@ -284,7 +284,7 @@ def stub_diagnosis(monkeypatch):
             return {"schema": "maglev-diagnosis/1", "run": self.n, "fit_before": {"nrmse": 0.5},
                     "fit_after": {"nrmse": float("nan")}, "mismatches": [], "missing_physics": []}
 
-    def diagnose(passes, ambient, progress=None):
+    def diagnose(passes, ambient, progress=None, **_options):
         runs.append(1)
         return Diagnosis(len(runs))
     monkeypatch.setattr(maglev_ros.discrepancy.recording, "load_recording",

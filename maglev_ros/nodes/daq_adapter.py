@@ -122,18 +122,10 @@ class DaqAdapterNode(Node):
         self._gate.cancel()
         for d in self.mapping.drivers.values():
             cls = DRIVER_CLASSES[d.msg_type]
-            sub = SensorSubscription(self, cls, d.topic, self._cb(d.topic, cls, d.stamp_source == "receive"),
-                                     qos=QOS_STREAM, raw=True)
-            if sub.adapts:            # one timer checks them all (rclpy warns about many timers on a clock)
-                self.destroy_timer(sub.timer)
-            self.subs.append(sub)
-        self.create_timer(SensorSubscription.CHECK_PERIOD_S, self._adapt)
+            # (SensorSubscription's one timer per node checks every sensor subscription's reliability)
+            self.subs.append(SensorSubscription(self, cls, d.topic, self._cb(d.topic, cls, d.stamp_source == "receive"),
+                                                qos=QOS_STREAM, raw=True))
         self.get_logger().info(f"taking {len(self.subs)} driver topic(s)")
-
-    def _adapt(self) -> None:
-        for sub in self.subs:
-            if sub.adapts:
-                sub.adapt()
 
     # ------------------------------------------------------------------ data
     def _cb(self, topic: str, cls, receive_stamp: bool):

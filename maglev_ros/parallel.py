@@ -120,6 +120,18 @@ def _pack(fn) -> tuple[str, bytes]:
     return hashlib.sha1(fn_bytes).hexdigest(), fn_bytes
 
 
+def _collect(completed, index_of, n: int, done) -> list:
+    """Results in item order from futures as they complete (``index_of(future)``: its item)."""
+    cloudpickle = _cloudpickle()
+    out: list = [None] * n
+    for f in completed:
+        i = index_of(f)
+        out[i] = cloudpickle.loads(f.result())
+        if done is not None:
+            done(i)
+    return out
+
+
 class LocalPool(Executor):
     """``workers`` local processes (forkserver where available, else spawn), started on first use and
     kept for later maps until :meth:`close`."""
@@ -150,18 +162,12 @@ class LocalPool(Executor):
         token, fn_bytes = _pack(fn)
         pool = self._executor()
         futs = {pool.submit(_call, token, fn_bytes, cloudpickle.dumps(it)): i for i, it in enumerate(items)}
-        out: list = [None] * len(items)
         try:
-            for f in as_completed(futs):
-                i = futs[f]
-                out[i] = cloudpickle.loads(f.result())
-                if done is not None:
-                    done(i)
+            return _collect(as_completed(futs), futs.__getitem__, len(items), done)
         except BaseException:
             for f in futs:
                 f.cancel()
             raise
-        return out
 
     def close(self) -> None:
         if self._pool is not None:
@@ -202,16 +208,10 @@ class DaskExecutor(Executor):
         futs = self.client.map(_call, [token] * len(items), [fn_fut] * len(items),
                                [cloudpickle.dumps(it) for it in items], pure=False)
         index = {f.key: i for i, f in enumerate(futs)}
-        out: list = [None] * len(items)
         try:
-            for f in as_completed(futs):
-                i = index[f.key]
-                out[i] = cloudpickle.loads(f.result())
-                if done is not None:
-                    done(i)
+            return _collect(as_completed(futs), lambda f: index[f.key], len(items), done)
         finally:
             self.client.cancel(futs + [fn_fut])
-        return out
 
     def close(self) -> None:
         if self._own:

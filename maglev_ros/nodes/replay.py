@@ -20,7 +20,10 @@ linger_s also live, a change of the others is refused with the reason):
                                  launcher lists the graph's other nodes, so none misses the start),
                                  then until those taking part in the run protocol are ready; after
                                  each recording, until they have published its results
-  wait_timeout_s (float, 10)     ... subscribers / nodes / ready, at most this long
+  discover_timeout_s (float, 30) ... nodes of wait_nodes to appear in the graph, at most this long
+                                 (discovery takes seconds on a loaded machine; a running node is
+                                 not judged absent on the readiness budget)
+  wait_timeout_s (float, 10)     ... subscribers / ready, at most this long
   results_timeout_s (float, 900) ... results of a recording, at most this long
   linger_s (float, 0.5)          keep the node alive this long after the last recording
   stall_timeout_s (float, 300)   give up (exit 1, naming the topic) when a reliable subscriber
@@ -129,7 +132,9 @@ PARAMS = (
     Param("wait_nodes", [""], "before starting, wait until these nodes (names in the replay's namespace, "
                               "or fully qualified) are in the graph, then ready; after each recording, "
                               "until they have published its results"),
-    Param("wait_timeout_s", 10.0, "wait for subscribers / nodes / their being ready at most this long [s]",
+    Param("discover_timeout_s", 30.0, "wait for the nodes of wait_nodes to appear in the graph at most this "
+                                      "long [s]", range=(0.0, 1e9)),
+    Param("wait_timeout_s", 10.0, "wait for subscribers / the nodes' being ready at most this long [s]",
           range=(0.0, 1e9)),
     Param("results_timeout_s", 900.0, "after each recording, wait for the nodes' results at most this long [s]",
           range=(0.0, 1e9)),
@@ -159,6 +164,7 @@ class ReplayNode(Node):
         self.wait_subscribers = v["wait_subscribers"]
         self.wait_nodes = [n for n in v["wait_nodes"] if n]
         self.wait_timeout_s = v["wait_timeout_s"]
+        self.discover_timeout_s = v["discover_timeout_s"]
         self.results_timeout_s = v["results_timeout_s"]
         self.linger_s = v["linger_s"]
         stall_timeout_s = self.stall_timeout_s = v["stall_timeout_s"]
@@ -385,15 +391,16 @@ class _Progress:
         sys.stderr.flush()
 
 
-def _wait_until(node: ReplayNode, executor, ready, what) -> bool:
-    deadline = time.monotonic() + node.wait_timeout_s
+def _wait_until(node: ReplayNode, executor, ready, what, timeout_s: float | None = None) -> bool:
+    timeout_s = node.wait_timeout_s if timeout_s is None else timeout_s
+    deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not node.quit:
         executor.spin_once(timeout_sec=0.05)
         if ready():
             return True
     if node.quit:
         return False
-    node.get_logger().warning(f"waited {node.wait_timeout_s} s for {what()}; starting anyway")
+    node.get_logger().warning(f"waited {timeout_s:g} s for {what()}; starting anyway")
     return False
 
 
@@ -409,7 +416,8 @@ def _wait_for_nodes(node: ReplayNode, executor) -> None:
         names = {f"{space.rstrip('/')}/{name}" for name, space in node.get_node_names_and_namespaces()}
         return [n for n in wanted if n not in names]
 
-    if _wait_until(node, executor, lambda: not absent(), lambda: f"nodes {', '.join(absent())}"):
+    if _wait_until(node, executor, lambda: not absent(), lambda: f"nodes {', '.join(absent())}",
+                   node.discover_timeout_s):
         # a node appears in the graph just before its constructor creates its subscriptions
         end = time.monotonic() + 1.0
         while time.monotonic() < end:

@@ -3,7 +3,8 @@ by default, or an existing cluster by its scheduler's address.
 
 Workers are processes with one thread each (the verbs hold the GIL in numpy-light Python and
 numba code), BLAS/OpenMP at one thread per worker (the nanny's environment, and threadpoolctl in
-each job), so N workers use N cores. The twin's numba kernels are cached next to their source
+each job), so N workers use N cores; glibc's allocator keeps freed memory as in a plain process
+(:data:`maglev_ros.parallel.MALLOC_ENV`; Dask's own 64 KiB trim threshold cost a job 25 % in page faults). The twin's numba kernels are cached next to their source
 (``cache=True``); numba writes its cache files under a temporary name and renames them
 (``numba.core.caching``), so workers sharing the cache never read a half-written file (at worst
 one worker's index entry overwrites another's and a kernel is compiled again).
@@ -26,6 +27,7 @@ from maglev_ros import outputs
 from maglev_ros.batch.jobs import (FAILED_DIR, WORK_DIR, Job, JobResult, job_key, read_done,
                                    read_failed, run_job)
 from maglev_ros.errors import UserError
+from maglev_ros.parallel import MALLOC_ENV
 
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                   "NUMEXPR_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
@@ -59,7 +61,9 @@ def dask_client(scheduler: str | None = None, workers: int | None = None,
     n = workers or cores()
     # a worker holds only the task it runs (saturation 1.0: long tasks gain nothing from a queue
     # on the worker), so a worker's death counts against that task alone
-    cfg = {"distributed.scheduler.worker-saturation": 1.0}
+    cfg = {"distributed.scheduler.worker-saturation": 1.0,
+           "distributed.nanny.pre-spawn-environ": {
+               **dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ONE_THREAD_ENV, **MALLOC_ENV}}
     if allowed_failures is not None:
         cfg["distributed.scheduler.allowed-failures"] = allowed_failures
     with dask.config.set(cfg):

@@ -35,6 +35,7 @@ from typing import Callable
 
 from maglev_ros import outputs
 from maglev_ros.errors import UserError
+from maglev_ros.parallel import keep_freed_memory
 
 JOB_FILE = "job.json"
 WORK_DIR = ".work"
@@ -336,6 +337,7 @@ def run_job(job: Job, out: str) -> JobResult:
     res = JobResult(job.name, job.verb, job.bag, "failed", ambient=job.ambient,
                     worker=f"{socket.gethostname()}:{os.getpid()}", spec=_jsonable(job.spec()))
     _limit_threads()
+    keep_freed_memory()          # a worker of someone else's `dask worker` starts with Dask's trim threshold
     verb = VERBS[job.verb]
     work = out / WORK_DIR / f"{job.name}.{secrets.token_hex(4)}"
     work.mkdir(parents=True)

@@ -24,6 +24,9 @@ def test_parameter_changes_only_are_calibrated_not_called_missing_physics():
     rep = diagnose(case.passes, case.ambient).to_dict()
     assert rep["missing_physics"] == []
     assert rep["fit_after"]["nrmse"] == pytest.approx(rep["fit_before"]["nrmse"])
+    # nothing found: the twin after is the calibrated one, so every located mismatch stays
+    after = [m["after_found_physics"] for m in rep["mismatches"] if "after_found_physics" in m]
+    assert after and all(a["flagged_share"] == 1.0 for a in after), after
     truth = twin_config()
     # E of the truth was design * (1 + err): the calibration recovers it within 4 %
     assert rep["updated_parameters"]["youngs_modulus_pa"] == pytest.approx(truth.guideway.youngs_modulus_pa, rel=0.04)

@@ -106,6 +106,27 @@ def test_injected_tone_is_located_in_time_place_and_band():
     assert m.severity > 10
 
 
+
+def test_a_mismatch_is_explained_once_the_twin_carries_its_physics():
+    """The tone's mismatch against a twin that has the tone (its exact band powers, computed from
+    the tone alone) leaves no cell flagged; against the same twin without it, every cell stays."""
+    from maglev_ros.discrepancy.localize import region_after
+    rng = np.random.default_rng(7)
+    t = np.arange(0, 8, 1 / FS)
+    tone = np.where((t > 3.0) & (t < 5.0), 0.2 * np.sin(2 * np.pi * 47.0 * t), 0.0)
+    sig = {"G1": (t, rng.normal(0, 0.01, t.size)), "G2": (t, rng.normal(0, 0.01, t.size) + tone)}
+    rec = _rec(sig, (t[::5], 10.0 * t[::5] - 20.0, np.full(t[::5].size, 10.0)))
+    rd = _rd(rec, 0.01)
+    without = {n: np.broadcast_to(rd.noise[n], rd.pm[n].shape) for n in rec.channels}
+    with_tone = dict(without, G2=without["G2"] + band_powers(t, tone, FS, rd.grid))
+    before = residual_map(rd, without)
+    m = mismatches(before)[0]
+    kept = region_after(m, before, residual_map(rd, without))
+    assert kept == region_after(m, before, before) and kept["flagged_share"] == 1.0
+    assert kept["severity"] == pytest.approx(m.severity, rel=0.1)     # the region's box, not only its cells
+    explained = region_after(m, before, residual_map(rd, with_tone))
+    assert explained["flagged_share"] == 0.0 and explained["severity"] < 0.1 * m.severity
+
 # ---- noise floor from the recording's own quiet frames (coloured sensor noise) ----------------
 def _coloured(rng, n, colour, std):
     """Independent reference noise of RMS ``std``: white, pink (PSD ~ 1/f down to the record's

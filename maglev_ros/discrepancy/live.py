@@ -131,13 +131,28 @@ def diagnosis_events(rep: Mapping) -> list[dict]:
                     "severity": float(before / after) if before and after else np.nan,
                     "effect": m.get("effect", ""), "category": m.get("category", ""),
                     "explanation": m.get("explanation", ""), "detail": m})
+    found = [e.get("effect") or e.get("category") for e in rep.get("missing_physics", [])]
     for m in rep.get("mismatches", []):
         out.append({"channels": list(m.get("channels") or []), "time_s": list(m.get("time_s") or [np.nan, np.nan]),
                     "position_m": _pair(m.get("position_m")), "frequency_hz": _pair(m.get("frequency_hz")),
                     "severity": float(m.get("severity", np.nan)), "effect": "", "category": "",
-                    "explanation": "located mismatch (the diagnosis names its physics above, if any)",
-                    "detail": m})
+                    "explanation": mismatch_explanation(m, found), "detail": m})
     return out
+
+
+def mismatch_explanation(m: Mapping, found: list[str]) -> str:
+    """One line on a located mismatch of the calibrated twin: whether the twin with the found
+    physics still shows it (most of its cells no longer flagged: explained)."""
+    after = m.get("after_found_physics")
+    sev = m.get("severity")
+    if not after:
+        return "located mismatch of the calibrated twin (the diagnosis names its physics above, if any)"
+    what = ", ".join(found) if found else "nothing found"
+    if after["flagged_share"] < 0.5:
+        return (f"located mismatch of the calibrated twin, explained by the found physics ({what}): "
+                f"severity {sev:.3g} -> {after['severity']:.3g}, {100 * after['flagged_share']:.0f} % of its cells left")
+    return (f"located mismatch that the found physics ({what}) does not explain: severity {sev:.3g} -> "
+            f"{after['severity']:.3g}, {100 * after['flagged_share']:.0f} % of its cells left")
 
 
 def _pair(v) -> list:

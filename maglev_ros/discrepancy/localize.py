@@ -288,6 +288,29 @@ def mismatches(rmap: ResidualMap, max_regions: int = 12, min_cells: int = 2) -> 
     return out[:max_regions]
 
 
+def region_after(m: Mismatch, before: ResidualMap, after: ResidualMap) -> dict | None:
+    """How a mismatch's cells look against another twin (the one with the found physics): the
+    mean |severity| over the cells flagged before, and the share of them still flagged. None when
+    the maps do not cover its channels, frames and bands."""
+    g = before.rd.grid
+    if m.frequency_hz is None or after.rd.grid.n_frames != g.n_frames:
+        return None
+    fr = (g.t_center_s - g.frame_s / 2 >= m.time_s[0] - 1e-9) & (g.t_center_s + g.frame_s / 2 <= m.time_s[1] + 1e-9)
+    bd = (g.edges_hz[:-1] >= m.frequency_hz[0] - 1e-9) & (g.edges_hz[1:] <= m.frequency_hz[1] + 1e-9)
+    region = fr[:, None] & bd[None, :]
+    sev, n_before, n_after = [], 0, 0
+    for n in m.channels:
+        if n not in before.flags or n not in after.flags:
+            continue
+        cells = region & before.flags[n]
+        n_before += int(cells.sum())
+        n_after += int((cells & after.flags[n]).sum())
+        sev.extend(np.abs(after.severity[n][cells]).tolist())
+    if not n_before:
+        return None
+    return {"severity": float(np.mean(sev)), "flagged_share": n_after / n_before}
+
+
 def excess_by_channel(rmap: ResidualMap) -> dict:
     """Share of flagged cells per channel (for ranking sensor-error candidates)."""
     return {n: float(f.mean()) for n, f in rmap.flags.items()}

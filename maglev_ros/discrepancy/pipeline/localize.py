@@ -46,6 +46,7 @@ class Localization:
     found: list[Mismatch]              # strongest first, then the persistent ones
     persistent: list[Mismatch]
     detuned: list                      # span_modes.DetunedSpan
+    ambient_map: ResidualMap | None = None   # the ambient recording against the calibrated twin
 
 
 def localize(cal: Calibration, ambient: Recording | None, config, progress: Progress = NULL) -> Localization:
@@ -58,8 +59,10 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     found: list[Mismatch] = []
     for m in maps:
         found.extend(mismatches(m))
+    amb_map = None
     if rd_amb is not None:
-        found.extend(mismatches(residual_map(rd_amb, model_powers(spec, rd_amb)), max_regions=4))
+        amb_map = residual_map(rd_amb, model_powers(spec, rd_amb))
+        found.extend(mismatches(amb_map, max_regions=4))
         progress.advance(note="ambient")
     found.sort(key=lambda m: -m.severity * (m.time_s[1] - m.time_s[0]))
     # band misfits of one girder sensor that persist over whole passes (too weak for any frame)
@@ -68,4 +71,4 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     # spans whose first mode rings off the others' in the free decay after the passes (reported;
     # a finding for the discovery, not a reason to fit more catalogue hypotheses)
     detuned = detuned_spans(span_mode_shifts(cal.data.passes, spec))
-    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned)
+    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map)

@@ -21,7 +21,7 @@ from ..acceptance import Verdict
 from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, model_powers
 from ..fitting import IDENTIFIABLE_LLR, HypFit, profile_spread
-from ..localize import Mismatch, residual_map
+from ..localize import Mismatch, region_after, residual_map
 from ..model import ModelSpec
 from ..recording import Recording
 from ..scale_signature import PeerReferencedFit, ScaleSignature
@@ -136,7 +136,8 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "schema": SCHEMA,
         "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
         "fit_after": {"nrmse": nr_after, "per_channel": pc_after},
-        "mismatches": _mismatch_entries(found + [s.to_mismatch() for s in detuned], [*raw_passes, ambient]),
+        "mismatches": _mismatch_entries(found + [s.to_mismatch() for s in detuned], [*raw_passes, ambient],
+                                        _maps_by_source(loc, final_spec, maps_after)),
         "missing_physics": missing,
         "rejected": rejected,
         "updated_parameters": final_spec.calibrated_values(),
@@ -281,15 +282,34 @@ def _named(text: str, recs: Sequence[Recording | None]) -> str:
     return text
 
 
-def _mismatch_entries(found: Sequence[Mismatch], recs: Sequence[Recording | None]) -> list[dict]:
+def _mismatch_entries(found: Sequence[Mismatch], recs: Sequence[Recording | None],
+                      maps: dict | None = None) -> list[dict]:
     """``mismatches`` of the report, most severe first, each with (optional keys) the recording's name
-    and its time from that recording's first sample (None when it spans several recordings)."""
+    and its time from that recording's first sample (None when it spans several recordings), and
+    ``after_found_physics`` (``maps``: source -> (map before, map against the final twin)): its
+    cells' mean severity and the share still flagged once the found physics is in the twin."""
     by_source = {r.source: r for r in recs if r is not None}
     out = []
     for m in sorted(found, key=lambda m: -m.severity):
         r = by_source.get(m.recording)
-        out.append({**m.to_dict(), "recording": r.name if r is not None else _named(m.recording, recs),
-                    "time_from_start_s": None if r is None else [m.time_s[0] - r.t0_s, m.time_s[1] - r.t0_s]})
+        e = {**m.to_dict(), "recording": r.name if r is not None else _named(m.recording, recs),
+             "time_from_start_s": None if r is None else [m.time_s[0] - r.t0_s, m.time_s[1] - r.t0_s]}
+        pair = (maps or {}).get(m.recording)
+        after = region_after(m, *pair) if pair else None
+        if after is not None:
+            e["after_found_physics"] = after
+        out.append(e)
+    return out
+
+
+def _maps_by_source(loc: Localization, final_spec: ModelSpec, maps_after: list) -> dict:
+    """source -> (residual map against the calibrated twin, against the final one), every recording
+    the mismatches come from (the passes, and the ambient one)."""
+    after = {m.rd.rec.source: m for m in maps_after}
+    out = {m.rd.rec.source: (m, after[m.rd.rec.source]) for m in loc.maps if m.rd.rec.source in after}
+    if loc.ambient_map is not None:
+        rd = loc.ambient
+        out[rd.rec.source] = (loc.ambient_map, residual_map(rd, model_powers(final_spec, rd)))
     return out
 
 

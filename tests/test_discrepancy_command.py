@@ -46,10 +46,13 @@ def test_report_json_follows_the_public_schema(run):
         assert _num(rep[k]["nrmse"]) and all(_num(v) for v in rep[k]["per_channel"].values())
     bags = {p.name for p in (run.parent / "bags").iterdir()}
     for m in rep["mismatches"]:
-        # the schema's keys, and the optional recording (a bag's name, or what spans several) and times
-        # from its start
-        assert set(m) - {"recording", "time_from_start_s"} == {"channels", "time_s", "position_m",
-                                                                "frequency_hz", "severity"}
+        # the schema's keys, and the optional recording (a bag's name, or what spans several), times
+        # from its start and how it looks against the twin with the found physics
+        assert set(m) - {"recording", "time_from_start_s", "after_found_physics"} == {
+            "channels", "time_s", "position_m", "frequency_hz", "severity"}
+        if "after_found_physics" in m:
+            a = m["after_found_physics"]
+            assert set(a) == {"severity", "flagged_share"} and _num(a["severity"]) and 0 <= a["flagged_share"] <= 1
         assert len(m["time_s"]) == 2 and (m["position_m"] is None or len(m["position_m"]) == 2)
         assert "/" not in m.get("recording", "")
         if m.get("recording") in bags:

@@ -373,8 +373,9 @@ def _fit_items(spec: ModelSpec, rd: RecData, only=None, mp: dict | None = None,
                names_out: list | None = None) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """(measured, modelled, scale) of every fitted channel/feature of one recording: band
     amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
-    and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's whole
-    amplitude over those frames).
+    and the frame means of its gap (its mean, an offset of the gap sensor, and its slow variation
+    above the rail reconstruction's corner, :func:`.features.without_long_waves`; scaled by the
+    gap's whole amplitude over those frames).
     ``only``: a set of channel names (then only those channels and the features built from them) or
     a :class:`Selection`. ``mp``: the model band powers when the caller has them. ``names_out`` (a
     list) receives (kind, channel names, frame of each row) of each item: kind is "bands",

@@ -25,7 +25,7 @@ import numpy as np
 from scipy import stats
 
 from .features import (S_MIN_HZ, FrameGrid, band_powers, frame_grid, frame_means, nrmse_amplitude, rail_transmissibility,
-                       usable_bands)
+                       usable_bands, without_long_waves)
 from .model import ModelSpec, guideway_modal, predict, reference_value
 from .irregularity import vehicle_over_valid
 from .recording import Recording
@@ -127,6 +127,15 @@ def fit_noise_floor(p_frames: np.ndarray, grid: FrameGrid, usable: np.ndarray, e
     return width * np.exp(icpt + slope * np.log(fc))
 
 
+def rail_corner_hz(rec: Recording) -> float | None:
+    """Time corner below which the twin's rail of this pass holds no waves (its reconstruction's
+    high-pass), None when the twin runs without a reconstructed rail."""
+    if rec.irregularity is None:
+        return None
+    hp = ((rec.irregularity_info or {}).get("band") or {}).get("highpass_hz")
+    return float(hp) if hp else None
+
+
 def prepare(rec: Recording, base: ModelSpec) -> RecData:
     grid = frame_grid(rec)
     refs = {n: reference_value(rec, n) for n in rec.channels}
@@ -193,7 +202,8 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
         m = masks[a] & masks[g] & np.any(np.isfinite(s), axis=0)
         if m.any():
             rd.sens_pairs[key], rd.sens[key], rd.sens_masks[key] = (a, g), s, m
-            lv = frame_means(cg.time_s, cg.values - refs[g], cg.sample_rate_hz, grid)
+            lv = frame_means(cg.time_s, without_long_waves(cg.values - refs[g], cg.sample_rate_hz, rail_corner_hz(rec)),
+                             cg.sample_rate_hz, grid)
             lv[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
             # scale: the gap's whole signal over those frames (frame means and dynamics), so that a
             # smooth guideway (tiny gap dynamics) does not blow the level misfit up
@@ -286,7 +296,8 @@ def _levels_of(rd: RecData, pred: dict) -> dict:
     out = {}
     for g in rd.level:
         ch = rd.rec.channels[g]
-        out[g] = frame_means(ch.time_s, pred[g] - reference_value(rd.rec, g), ch.sample_rate_hz, rd.grid)
+        y = without_long_waves(pred[g] - reference_value(rd.rec, g), ch.sample_rate_hz, rail_corner_hz(rd.rec))
+        out[g] = frame_means(ch.time_s, y, ch.sample_rate_hz, rd.grid)
     return out
 
 
@@ -362,8 +373,9 @@ def _fit_items(spec: ModelSpec, rd: RecData, only=None, mp: dict | None = None,
                names_out: list | None = None) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """(measured, modelled, scale) of every fitted channel/feature of one recording: band
     amplitudes of the channels (over :func:`fit_mask`), each magnet's gap-to-rail transmissibility
-    and the frame means of its gap (offsets and drifts of the gap sensor; scaled by the gap's whole
-    amplitude over those frames).
+    and the frame means of its gap (its mean, an offset of the gap sensor, and its slow variation
+    above the rail reconstruction's corner, :func:`.features.without_long_waves`; scaled by the
+    gap's whole amplitude over those frames).
     ``only``: a set of channel names (then only those channels and the features built from them) or
     a :class:`Selection`. ``mp``: the model band powers when the caller has them. ``names_out`` (a
     list) receives (kind, channel names, frame of each row) of each item: kind is "bands",

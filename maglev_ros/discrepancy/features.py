@@ -179,6 +179,25 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     return (out, rail) if with_rail_power else out
 
 
+def without_long_waves(x: np.ndarray, fs_hz: float, corner_hz: float | None) -> np.ndarray:
+    """``x`` with its content below ``corner_hz`` removed except its mean (zero-phase 2nd-order
+    Butterworth high-pass, NaN samples kept NaN). Used on gaps before their frame means: below the
+    rail reconstruction's corner the twin's input holds no rail, so the gap's slow tracking of those
+    waves cannot be predicted; the mean (a sensor offset) can. ``corner_hz`` None: ``x`` unchanged."""
+    if corner_hz is None or not corner_hz > 0 or not 0 < corner_hz < 0.5 * fs_hz:
+        return x
+    from scipy import signal
+    ok = np.isfinite(x)
+    if ok.sum() < 16:
+        return x
+    idx = np.arange(x.size)
+    filled = np.interp(idx, idx[ok], x[ok])
+    sos = signal.butter(2, corner_hz, btype="high", fs=fs_hz, output="sos")
+    out = signal.sosfiltfilt(sos, filled) + float(np.mean(x[ok]))
+    out[~ok] = np.nan
+    return out
+
+
 def frame_means(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -> np.ndarray:
     """(n_frames,) Hann-weighted mean of x in each frame (NaN outside the signal)."""
     w, _, ok, idx = _frames(t_s, x.size, fs_hz, grid)

@@ -26,8 +26,8 @@ from .evaluate import RecData, levitation_items, residual_rows, residual_vector
 from .model import CAL_PARAMS, ModelSpec
 
 PRIOR_SIGMA = 0.5
-CAL_LO = np.array([-0.7, -2.5, -0.5, -0.7])
-CAL_HI = np.array([0.7, 2.5, 0.5, 0.7])
+CAL_LO = np.array([-0.7, -2.5, -0.5, -0.7, -0.5])
+CAL_HI = np.array([0.7, 2.5, 0.5, 0.7, 0.5])
 
 
 @dataclass
@@ -52,7 +52,9 @@ def fit_base(spec: ModelSpec, rds: list[RecData], max_nfev: int = 6) -> BaseFit:
         r = residual_vector(_with_cal(spec, th), rds)
         n_data[0] = r.size
         return np.concatenate([r, 0.02 * th / PRIOR_SIGMA])
-    x0 = np.clip(np.array(spec.cal, float), CAL_LO, CAL_HI)
+    x0 = np.zeros(len(CAL_PARAMS))
+    x0[:len(spec.cal)] = spec.cal
+    x0 = np.clip(x0, CAL_LO, CAL_HI)
     res = least_squares(fun, x0, bounds=(CAL_LO, CAL_HI), diff_step=0.03, max_nfev=max_nfev,
                         x_scale=1.0, ftol=1e-4, xtol=1e-4)
     th = res.x

@@ -57,6 +57,7 @@ CALIBRATED = {
     "bearing_stiffness_n_per_m": ("bearing stiffness", "kb", "MN/m", 1e-6),
     "kp_a_per_m": ("levitation control gain on the gap", "kp", "A/m", 1.0),
     "kv_a_s_per_m": ("levitation control gain on the gap rate", "kv", "A s/m", 1.0),
+    "density_kg_m3": ("density of the girders", "rho", "kg/m^3", 1.0),
 }
 
 # found-physics parameters: unit and the twin's value (without that physics); None: not defined there

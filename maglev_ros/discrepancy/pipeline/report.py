@@ -314,7 +314,7 @@ def _maps_by_source(loc: Localization, final_spec: ModelSpec, maps_after: list) 
 
 
 CAL_UNITS = {"youngs_modulus_pa": "Pa", "bearing_stiffness_n_per_m": "N/m", "kp_a_per_m": "A/m",
-             "kv_a_s_per_m": "A s/m"}
+             "kv_a_s_per_m": "A s/m", "density_kg_m3": "kg/m^3"}
 
 
 def _parameter_details(nominal: ModelSpec, final: ModelSpec) -> dict:

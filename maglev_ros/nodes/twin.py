@@ -26,7 +26,9 @@ to the twin in (stamp, topic) order whatever order DDS delivers the topics in
 as the offline twin fed the bag in that order. Without a replay
 (a live sensor stream: no replay event ever seen) the remainder is stepped when the input stops
 for ``idle_flush_s``. A new recording's metadata builds a new twin; blocks that come between a
-recording's end and the next metadata wait for it.
+recording's end and the next metadata wait for it. Parameters (/maglev/twin/parameters) are adopted
+at once on a live stream; during a replay's recording, by the next recording's twin (their arrival
+time depends on the wall clock, the recording's predictions must not).
 
 Parameters (``PARAMS``, with descriptions and ranges; read at construction except
 ``idle_flush_s``): ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush_s`` (2.0,
@@ -230,7 +232,7 @@ class TwinNode(Node):
         self.get_logger().info(f"twin built: {len(self.core.guideway_x)} guideway and "
                                f"{len(self.core.magnet_of)} magnet channels predictable")
         if self.pending_params is not None:     # the newest parameters carry over to a new recording's twin
-            self._on_params(self.pending_params)
+            self._adopt(self.pending_params)
         if self.pending_profile is not None:
             self._on_profile(self.pending_profile)
         early, self.early = self.early, []
@@ -292,10 +294,20 @@ class TwinNode(Node):
             self.n_out += 1
 
     def _on_params(self, msg) -> None:
-        from maglev_ros.errors import UserError
         self.pending_params = msg
         if self.core is None:
             return
+        if self.lifecycle.events_seen and not self.spent:
+            # a replay: when a revision arrives within a recording depends on the wall clock, so
+            # adopting it at once would change the predictions at another block on every run; the
+            # next recording's twin adopts it (between recordings the replay waits for the updater)
+            self.get_logger().info(f"twin parameters rev {msg.revision} arrived during a recording: the next "
+                                   f"recording's twin adopts them (a replay gives the same predictions every run)")
+            return
+        self._adopt(msg)
+
+    def _adopt(self, msg) -> None:
+        from maglev_ros.errors import UserError
         try:
             adopted = self.core.set_parameters(list(msg.names), list(msg.values), source_revision=int(msg.revision))
             self.get_logger().info(f"adopted twin parameters rev {msg.revision}: {adopted}")

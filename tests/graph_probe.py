@@ -30,7 +30,7 @@ from std_msgs.msg import String
 from maglev_msgs.msg import SensorBlock
 from maglev_ros.bag_reader import BagReader
 from maglev_ros.contract import TOPIC_METADATA
-from maglev_ros.nodes._common import message_class, qos_for
+from maglev_ros.nodes._common import message_class, observer_qos_for, qos_for
 from maglev_ros.nodes._lifecycle import GraphWaiter, ReplayEvent
 from ros_collect import to_plain
 
@@ -50,7 +50,7 @@ def main() -> None:
         msgtype, topic = item.split(":", 1)
         got[topic] = []
         node.create_subscription(message_class(msgtype), topic,
-                                 lambda m, t=topic: got[t].append(to_plain(m)), qos_for(topic))
+                                 lambda m, t=topic: got[t].append(to_plain(m)), observer_qos_for(topic))
     pub_md = node.create_publisher(String, TOPIC_METADATA, qos_for(TOPIC_METADATA))
     left = waiter.wait(ex, lambda: waiter.not_ready(nodes), timeout)
     assert not left, f"nodes not ready: {left}"

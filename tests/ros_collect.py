@@ -17,7 +17,7 @@ import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 
-from maglev_ros.nodes._common import message_class, qos_for
+from maglev_ros.nodes._common import message_class, observer_qos_for
 
 
 def to_plain(msg):
@@ -46,7 +46,7 @@ def main():
         def cb(msg, topic=topic):
             got[topic].append(to_plain(msg))
             last["t"] = time.monotonic()
-        node.create_subscription(message_class(msgtype), topic, cb, qos_for(topic))
+        node.create_subscription(message_class(msgtype), topic, cb, observer_qos_for(topic))
     ex = EventsExecutor()
     ex.add_node(node)
     end = time.monotonic() + seconds

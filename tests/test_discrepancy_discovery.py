@@ -95,7 +95,7 @@ def _truth_pass(speed, attach, seed, n_el=24):
 def _base_fit(spec, rds):
     r0 = residual_vector(spec, rds)
     cols = []
-    for j in range(4):
+    for j in range(len(spec.cal)):
         c = list(spec.cal)
         c[j] += 0.03
         cols.append((residual_vector(spec.with_(cal=tuple(c)), rds) - r0) / 0.03)

@@ -87,15 +87,15 @@ def test_a_frame_selection_splits_the_rows_by_frame(pass_rd):
 def test_projection_on_vehicle_rows_refits_the_gains_only():
     rng = np.random.default_rng(3)
     n = 300
-    J = rng.normal(size=(n, 4))
-    theta = np.array([0.05, -0.1, 0.02, -0.3])
-    d_true = np.array([0.1, 0.2, -0.05, 0.15])
+    J = rng.normal(size=(n, 5))                      # E, kb, kp, kv, rho
+    theta = np.array([0.05, -0.1, 0.02, -0.3, 0.04])
+    d_true = np.array([0.1, 0.2, -0.05, 0.15, -0.08])
     r = -J @ d_true                                  # the residual that d_true removes
     base = BaseFit(spec=None, theta=theta, jac=J, r0=np.zeros(n), n_sims=0)
     rows = np.zeros(n, bool)
     rows[::3] = True
     r_rows, d = _project(base, r[rows], rows)
-    assert d[0] == 0.0 and d[1] == 0.0               # E and kb held
+    assert d[0] == 0.0 and d[1] == 0.0 and d[4] == 0.0   # E, kb and rho held
     # reference: min ||r + J_g d_g||^2 + lam ||theta_g + d_g||^2 over the gains, solved directly
     lam = (0.02 / PRIOR_SIGMA) ** 2
     Jg = J[rows][:, _GAINS]
@@ -104,6 +104,6 @@ def test_projection_on_vehicle_rows_refits_the_gains_only():
     d_ref = np.linalg.lstsq(A, b, rcond=None)[0]
     assert np.allclose(d[_GAINS], d_ref, rtol=1e-9, atol=1e-12)
     assert np.allclose(r_rows, r[rows] + Jg @ d_ref)
-    # every row: all four re-fitted, close to the generating step (weak prior)
+    # every row: all five re-fitted, close to the generating step (weak prior)
     _, d_all = _project(base, r)
     assert np.allclose(d_all, d_true, atol=0.01)

@@ -143,7 +143,7 @@ def _end_of_stream(name: str, node) -> None:
         node.idle_flush_s = 0.0
         node._idle()
     elif name == "irregularity":
-        node._publish()
+        node.flush_live()
     elif name == "discrepancy":
         for ev in node.detector.flush():
             node._publish(ev)

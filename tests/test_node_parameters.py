@@ -25,7 +25,7 @@ CASES = {
     "replay": ("maglev_ros.nodes.replay", "ReplayNode", {"bag": str(BAG)}, ("rate", 4.0),
                lambda n: n.clock.rate),
     "irregularity": ("maglev_ros.nodes.irregularity", "IrregularityNode", {}, ("publish_period_s", 0.25),
-                     lambda n: n.timer.timer_period_ns * 1e-9),
+                     lambda n: n.period_ns * 1e-9),
     "modal_id": ("maglev_ros.nodes.modal_id", "ModalIdNode", {}, None, None),
     "twin": ("maglev_ros.nodes.twin", "TwinNode", {}, ("idle_flush_s", 7.0), lambda n: n.idle_flush_s),
     "updater": ("maglev_ros.nodes.updater", "UpdaterNode", {}, ("nrmse_trigger", 0.4),

@@ -154,7 +154,7 @@ def test_dom_holds_the_tables_with_units(dom):
     assert {"recording", "duration [s]"} <= set(rec["head"]) and len(rec["rows"]) == 3
     par = p.tables["parameters"]
     assert {"unit", "nominal (design)", "updated", "std"} <= set(par["head"])
-    assert len(par["rows"]) == 4
+    assert len(par["rows"]) == 5           # E, kb, kp, kv, rho
     for unit, nominal, updated, std in zip(_column(par, "unit"), _column(par, "nominal (design)"),
                                            _column(par, "updated"), _column(par, "std")):
         assert unit and unit != "\u2014"

@@ -78,6 +78,16 @@ def qos_for(topic: str) -> QoSProfile:
     return copy.copy(QOS_LATCHED if topic in LATCHED_TOPICS else QOS_STREAM)
 
 
+def observer_qos_for(topic: str) -> QoSProfile:
+    """``qos_for`` for a subscriber that wants every message (a recorder, a test's collector): a
+    latched topic read keep-all, so a burst is never overwritten in its queue before it is taken
+    (its writers wait for every reader's acknowledgement before publishing the next)."""
+    q = qos_for(topic)
+    if topic in LATCHED_TOPICS:
+        q.history = HistoryPolicy.KEEP_ALL
+    return q
+
+
 def run_node(node_factory, args=None) -> int:
     """Init rclpy, build the node, spin it with an EventsExecutor, shut down cleanly.
 

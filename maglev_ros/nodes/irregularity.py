@@ -3,12 +3,15 @@
 Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position}; feeds
 :class:`maglev_ros.irregularity.profile.IncrementalProfiler`; publishes the profile on
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
-profile whenever it joins) every ``publish_period_s`` when it has grown (never an all-NaN one).
-The grown profile is computed on a worker thread from a copy of the profiler (its ``result()``
-re-processes the buffered tail: a few tenths of a second, which in the executor held back every
-stream) and published from there as soon as it is out (rclpy's EventsExecutor has no guard
-conditions to hand it back); one at a time, started by the timer, never more often than takes
-``LIVE_DUTY`` of a core, so its cost per wall second stays bounded at any replay rate.
+profile whenever it joins) every ``publish_period_s`` of STREAM time when it has grown (never an
+all-NaN one). The blocks are fed in (stamp, topic) order whatever order DDS delivers the topics in
+(:mod:`maglev_ros.stream_order`), and each live profile is that of a copy of the profiler taken
+when the ordered stream reaches its mark (every block stamped before it, none after), computed on
+a worker thread (its ``result()`` re-processes the buffered tail: a few tenths of a second, which
+in the executor held back every stream) and published from there, stamped at the mark: a replay
+gives the same live profiles on every run. When the worker falls more than ``LIVE_BACKLOG_S`` of
+stream behind (a long recording replayed far faster than the profiles are computed), a mark is
+skipped, counted on /diagnostics and said once; only then do runs differ.
 
 At a recording's end (graph run protocol, :mod:`maglev_ros.nodes._lifecycle`) it publishes the
 profile of the whole recording as ``maglev-ros irregularity`` computes it of the same bag: the
@@ -21,7 +24,7 @@ on the same worker, after any live one (the node says ``busy`` until it is publi
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
 spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
 15 km/h; the recording's profile at the verb's default), max_profile_m (0: unbounded),
-publish_period_s (1.0, live), max_recording_s (1800); each with its description and range in
+publish_period_s (1.0 s of stream), max_recording_s (1800); each with its description and range in
 ``PARAMS``.
 """
 from __future__ import annotations
@@ -34,6 +37,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import String
 
@@ -49,10 +53,12 @@ from maglev_ros.nodes._lifecycle import NodeLifecycle
 
 TOPIC_IRREGULARITY = "/maglev/irregularity"
 MAX_PENDING_BLOCKS = 5000
-# the live profile takes at most this fraction of a core: after a result that took c s of CPU the
-# next starts c * (1 / LIVE_DUTY - 1) s (wall) later at the earliest (CPU, not wall time: on a
-# loaded machine a result takes longer without costing more)
-LIVE_DUTY = 0.25
+# stream time of live profiles that may wait for the worker before a further mark is skipped: a
+# whole short pass even when replayed unpaced, so its live profiles are the same on every run
+LIVE_BACKLOG_S = 30.0
+ACK_TIMEOUT_S = 2.0   # at most this long for the subscribers to acknowledge a profile before the next
+POLL_S = 0.5          # wall period of the timer that lets a silent topic stop holding the others back
+IDLE_FLUSH_S = 2.0    # a live stream (no replay) that stopped this long: its tail's profile is published
 TOPIC_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap", TOPIC_VEHICLE_POSITION: "position"}
 
 PARAMS = (
@@ -62,7 +68,7 @@ PARAMS = (
     Param("band_speed_mps", 0.0, "speed that sets the valid wavelength band [m/s] (0: 80% of the "
                                  "metadata's nominal speed, else 15 km/h)", range=(0.0, 200.0)),
     Param("max_profile_m", 0.0, "longest profile kept [m] (0: unbounded)", range=(0.0, 1e7)),
-    Param("publish_period_s", 1.0, "wall-time period of publishing the grown profile [s]",
+    Param("publish_period_s", 1.0, "stream-time period of publishing the grown profile [s]",
           range=(0.01, 1e9), apply=lambda node, v: node.set_publish_period(v)),
     Param("max_recording_s", 1800.0, "keep at most this much stream of a recording for its end-of-recording "
                                      "profile [s]", range=(0.0, 1e7)),
@@ -77,7 +83,7 @@ class IrregularityNode(Node):
         self.spacing_m = v["spacing_m"]
         self.band_speed_mps = v["band_speed_mps"]
         self.max_profile_m = v["max_profile_m"]
-        period = v["publish_period_s"]
+        self.period_ns = int(round(v["publish_period_s"] * 1e9))
         self.max_recording_s = float(v["max_recording_s"])
         self.profiler = None
         self.metadata = None
@@ -93,25 +99,27 @@ class IrregularityNode(Node):
         self.gate = BlockGate(self, self.diagnostics)
         subscription(self, String, TOPIC_METADATA, self._on_metadata)
         for topic, key in TOPIC_KEYS.items():
-            subscription(self, SensorBlock, topic, self._on_block(topic, key))
+            subscription(self, SensorBlock, topic, self._on_block(topic))
         # one worker: the live profile (of a copy of the profiler) and the recording's profile
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irregularity")
-        self.live = None             # future of the live profile being computed (and published)
+        self.live: list = []         # futures of the live profiles queued or computing (and publishing)
+        self.live_skipped = 0        # marks skipped because the worker fell behind
         self.final = None            # future of the recording's profile being computed (and published)
+        self.order = None            # the recording's StreamOrder
+        self.next_mark_ns = None     # stream time of the next live profile
         self.send_lock = threading.Lock()   # the worker publishes; the signature is shared
         self.epoch = 0               # a new recording (metadata) or its end: older results are dropped
         self.n_taken = 0             # blocks fed to the profiler (a copy is made only when it grew)
         self.n_copied = -1
-        self.next_live = 0.0         # monotonic time before which no live result starts (LIVE_DUTY)
         self.live_cost_s = 0.0
-        self.timer = self.create_timer(period, self._publish)
+        self.last_input = time.monotonic()
+        self.timer = self.create_timer(POLL_S, self._poll)
         self.diagnostics.add_check(self._worker_check)
         self.lifecycle = NodeLifecycle(self, diagnostics=self.diagnostics)
 
     def set_publish_period(self, period_s: float) -> None:
-        """The ``publish_period_s`` parameter's live change."""
-        self.destroy_timer(self.timer)
-        self.timer = self.create_timer(period_s, self._publish)
+        """The ``publish_period_s`` parameter's live change (from the next mark on)."""
+        self.period_ns = int(round(period_s * 1e9))
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
@@ -128,6 +136,7 @@ class IrregularityNode(Node):
         self.published_signature = None
         self.epoch += 1
         self.n_taken, self.n_copied = 0, -1
+        self.order, self.next_mark_ns = self._stream_order(md), None
         if not offsets:
             self.get_logger().warning("metadata has no vehicle.magnet_offsets_m (ambient run?)")
             self.pending.clear()
@@ -139,19 +148,41 @@ class IrregularityNode(Node):
             band_speed_mps=band, max_profile_m=self.max_profile_m or None,
             highpass_hz=self.highpass_hz, spacing_m=self.spacing_m)
         pending, self.pending = self.pending, []
-        for key, block in pending:
-            self._take(key, block)
+        for topic, block in pending:
+            self._add(topic, block)
 
-    def _on_block(self, topic: str, key: str):
+    @staticmethod
+    def _stream_order(md):
+        from maglev_ros.stream_order import StreamOrder
+        topics = [t for t in TOPIC_KEYS if t == TOPIC_VEHICLE_POSITION or md.sensors_on_topic(t)]
+        return StreamOrder(topics)
+
+    def _add(self, topic: str, block) -> None:
+        for t, b in self.order.add(topic, block, time.monotonic()):
+            self._take_ordered(t, b)
+
+    def _take_ordered(self, topic: str, block) -> None:
+        """Blocks in (stamp, topic) order: a live mark passed is a copy of the profiler before it."""
+        if self.next_mark_ns is None:
+            self.next_mark_ns = block.stamp_ns + self.period_ns
+        if block.stamp_ns >= self.next_mark_ns:
+            marks = (block.stamp_ns - self.next_mark_ns) // self.period_ns
+            mark = self.next_mark_ns + marks * self.period_ns
+            self.next_mark_ns = mark + self.period_ns
+            self._live_at(mark)
+        self._take(TOPIC_KEYS[topic], block)
+
+    def _on_block(self, topic: str):
         def cb(msg) -> None:
             block = self.gate.block(msg, topic)
             if block is None:
                 return
+            self.last_input = time.monotonic()
             if self.metadata is None or self.spent:      # wait for this recording's metadata
                 if len(self.pending) < MAX_PENDING_BLOCKS:
-                    self.pending.append((key, block))
+                    self.pending.append((topic, block))
             elif self.profiler is not None:
-                self._take(key, block)
+                self._add(topic, block)
         return cb
 
     def _take(self, key: str, block) -> None:
@@ -182,7 +213,10 @@ class IrregularityNode(Node):
         """Compute the whole recording's profile (the verb's) on the worker, then start afresh;
         the timer publishes it, ``busy()`` until then."""
         if self.profiler is not None and not self.spent:
-            self.epoch += 1                      # a live result still running is of the ended recording
+            for t, b in self.order.flush():
+                self._take_ordered(t, b)
+            # the live profiles still queued are of this recording's marks: the worker publishes
+            # them first (its queue is in order), then this recording's profile
             job = (self.metadata, self.kept, self.profiler, self.last_stamp_ns)
             self.final = self.worker.submit(self._final_job, *job)
         self.spent = True
@@ -216,17 +250,44 @@ class IrregularityNode(Node):
             return None
 
     # ------------------------------------------------------------------ output
-    def _publish(self) -> None:
-        """Timer: start the next live profile when due (the worker publishes it)."""
-        if self.live is not None and self.live.done():
-            self._outcome(self.live, "the growing profile")
-            self.live = None
-        if (self.live is None and self.final is None and self.profiler is not None and not self.spent
-                and self.n_taken != self.n_copied and time.monotonic() >= self.next_live):
-            self.n_copied = self.n_taken
-            snapshot = copy.deepcopy(self.profiler)      # milliseconds; the fit goes on meanwhile
-            # stamped with the newest data in the copy, not the newer data taken by the time it is out
-            self.live = self.worker.submit(self._live_job, snapshot, self.epoch, self.last_stamp_ns)
+    def _live_at(self, mark_ns: int) -> None:
+        """Queue the live profile of the data before ``mark_ns`` (when the profiler grew)."""
+        self._prune()
+        if self.profiler is None or self.n_taken == self.n_copied:
+            return
+        if len(self.live) >= max(2, int(LIVE_BACKLOG_S * 1e9 / max(self.period_ns, 1))):
+            self.live_skipped += 1
+            if self.live_skipped == 1:
+                self.get_logger().warning("the live profile falls behind the stream: marks are skipped (counted "
+                                          "on /diagnostics; this run's live profiles differ from a slower one's)")
+            return
+        self.n_copied = self.n_taken
+        snapshot = copy.deepcopy(self.profiler)      # milliseconds; the fit goes on meanwhile
+        self.live.append(self.worker.submit(self._live_job, snapshot, self.epoch, mark_ns))
+
+    def _prune(self) -> None:
+        for f in [f for f in self.live if f.done()]:
+            self._outcome(f, "the growing profile")
+            self.live.remove(f)
+
+    def _poll(self) -> None:
+        """Timer: a topic silent for long no longer holds the others back; finished jobs reported;
+        a live stream (no replay) that stopped has its tail's profile published."""
+        self._prune()
+        if self.order is None or self.profiler is None or self.spent:
+            return
+        for t, b in self.order.poll(time.monotonic()):
+            self._take_ordered(t, b)
+        if not self.lifecycle.events_seen and time.monotonic() - self.last_input >= IDLE_FLUSH_S:
+            self.flush_live()
+
+    def flush_live(self) -> None:
+        """Everything held taken, and the profile of all of it queued (a stream that stopped)."""
+        if self.order is None or self.profiler is None or self.spent:
+            return
+        for t, b in self.order.flush():
+            self._take_ordered(t, b)
+        self._live_at(self.last_stamp_ns)
 
     def _live_job(self, profiler, epoch: int, stamp_ns: int) -> None:
         t = time.thread_time()                   # this worker thread's CPU time
@@ -236,9 +297,9 @@ class IrregularityNode(Node):
             res = None
         finally:
             self.live_cost_s = time.thread_time() - t
-            self.next_live = time.monotonic() + self.live_cost_s * (1.0 / LIVE_DUTY - 1.0)
-        # a recording's end (epoch) queues its own profile behind this job: this one is out first
-        if res is not None and epoch == self.epoch and not self.spent:
+        # a recording's end queues its own profile behind this job: this one is out first; a new
+        # recording (epoch) drops it
+        if res is not None and epoch == self.epoch:
             with self.send_lock:
                 self._send_grown(res, stamp_ns)
 
@@ -259,6 +320,7 @@ class IrregularityNode(Node):
     def _worker_check(self):
         from maglev_ros.nodes._diagnostics import OK, Check
         return Check(OK, "", {"live_profile_cost_s": f"{self.live_cost_s:.3f}",
+                              "live_profiles_skipped": str(self.live_skipped),
                               "recording_profile_running": self.final is not None})
 
     def unfinished_work(self) -> bool:
@@ -266,7 +328,7 @@ class IrregularityNode(Node):
         interpreter's teardown, which would join the worker's thread and wait for a result no one
         needs any more)."""
         self.worker.shutdown(wait=False, cancel_futures=True)
-        return any(j is not None and not j.done() for j in (self.live, self.final))
+        return any(j is not None and not j.done() for j in (*self.live, self.final))
 
     def _send(self, res, stamp_ns: int) -> None:
         if not np.isfinite(res.irregularity_m).any():
@@ -283,6 +345,9 @@ class IrregularityNode(Node):
         msg.kind = res.kind
         msg.sources = list(res.magnet_names)
         self.pub.publish(msg)
+        # the topic is latched with depth 1: a profile published before the subscribers acknowledged
+        # the previous one would replace it unseen, so what they receive would depend on timing
+        self.pub.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT_S))
         for w in res.warnings:
             key = (w.kind, w.channel, w.start_s)
             if key not in self.warned:

@@ -84,7 +84,8 @@ def test_noise_alone_is_never_a_mismatch(seed):
     assert mismatches(residual_map(rd, model)) == []
 
 
-def test_injected_tone_is_located_in_time_place_and_band():
+def _tone_case():
+    """White noise on G1 and G2, a 47 Hz tone on G2 in 3-5 s; the model: the noise floor alone."""
     rng = np.random.default_rng(7)
     t = np.arange(0, 8, 1 / FS)
     tone = np.where((t > 3.0) & (t < 5.0), 0.2 * np.sin(2 * np.pi * 47.0 * t), 0.0)
@@ -93,6 +94,11 @@ def test_injected_tone_is_located_in_time_place_and_band():
     rec = _rec(sig, (t[::5], 10.0 * t[::5] - 20.0, np.full(t[::5].size, 10.0)))
     rd = _rd(rec, 0.01)
     model = {n: np.broadcast_to(rd.noise[n], rd.pm[n].shape) for n in rec.channels}
+    return t, tone, rd, model
+
+
+def test_injected_tone_is_located_in_time_place_and_band():
+    _t, _tone, rd, model = _tone_case()
     found = mismatches(residual_map(rd, model))
     assert len(found) >= 1
     m = found[0]
@@ -111,13 +117,7 @@ def test_a_mismatch_is_explained_once_the_twin_carries_its_physics():
     """The tone's mismatch against a twin that has the tone (its exact band powers, computed from
     the tone alone) leaves no cell flagged; against the same twin without it, every cell stays."""
     from maglev_ros.discrepancy.localize import region_after
-    rng = np.random.default_rng(7)
-    t = np.arange(0, 8, 1 / FS)
-    tone = np.where((t > 3.0) & (t < 5.0), 0.2 * np.sin(2 * np.pi * 47.0 * t), 0.0)
-    sig = {"G1": (t, rng.normal(0, 0.01, t.size)), "G2": (t, rng.normal(0, 0.01, t.size) + tone)}
-    rec = _rec(sig, (t[::5], 10.0 * t[::5] - 20.0, np.full(t[::5].size, 10.0)))
-    rd = _rd(rec, 0.01)
-    without = {n: np.broadcast_to(rd.noise[n], rd.pm[n].shape) for n in rec.channels}
+    t, tone, rd, without = _tone_case()
     with_tone = dict(without, G2=without["G2"] + band_powers(t, tone, FS, rd.grid))
     before = residual_map(rd, without)
     m = mismatches(before)[0]

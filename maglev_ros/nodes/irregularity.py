@@ -98,7 +98,7 @@ class IrregularityNode(Node):
         self.diagnostics = NodeDiagnostics(self)
         self.gate = BlockGate(self, self.diagnostics)
         subscription(self, String, TOPIC_METADATA, self._on_metadata)
-        for topic, key in TOPIC_KEYS.items():
+        for topic in TOPIC_KEYS:
             subscription(self, SensorBlock, topic, self._on_block(topic))
         # one worker: the live profile (of a copy of the profiler) and the recording's profile
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irregularity")

@@ -287,7 +287,7 @@ def fit_gains(base: BaseFit, rds: list[RecData], rows: np.ndarray, max_nfev: int
     """The calibrated twin with kp, kv re-fitted on ``rows`` of the residual vector only (E, kb held):
     the null model against which levitation physics fitted on those rows is judged (re-fitting the
     gains on the vehicle channels alone gained 19-25 % there on clean cases: a "current saturation"
-    at 2.3-2.9 times the peak demand, which hardly acts, was accepted for it, tune cases 21, 23)."""
+    at 2.3-2.9 times the peak demand, which hardly acts, was accepted for it)."""
     th0 = base.theta.copy()
     n_rows = int(rows.sum())
 

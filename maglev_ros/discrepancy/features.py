@@ -15,6 +15,7 @@ numpy; scipy.signal.stft gives the same frames but not the band integration we n
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -65,7 +66,16 @@ def _frames(t_s: np.ndarray, size: int, fs_hz: float, grid: FrameGrid):
     starts = np.searchsorted(t_s, grid.t_center_s - grid.frame_s / 2)
     ok = (starts >= 0) & (starts + n <= size)
     idx = starts[ok][:, None] + np.arange(n)[None, :]
-    return np.hanning(n), np.fft.rfftfreq(n, 1.0 / fs_hz), ok, idx
+    w, f = _window_and_freqs(n, float(fs_hz))
+    return w, f, ok, idx
+
+
+@lru_cache(maxsize=64)
+def _window_and_freqs(n: int, fs_hz: float):
+    # the same few frame lengths recur for every frame of every channel (read-only: shared)
+    w, f = np.hanning(n), np.fft.rfftfreq(n, 1.0 / fs_hz)
+    w.flags.writeable = f.flags.writeable = False
+    return w, f
 
 
 def _band_power(X: np.ndarray, w: np.ndarray, fs_hz: float, W: np.ndarray) -> np.ndarray:
@@ -89,9 +99,17 @@ def band_powers(t_s: np.ndarray, x: np.ndarray, fs_hz: float, grid: FrameGrid) -
 
 def band_weights(grid: FrameGrid, f_hz: np.ndarray) -> np.ndarray:
     """Triangular partition-of-unity weights (n_bands, len(f)) on the band centres; frequencies
-    above the last band's upper edge get no weight."""
-    c = grid.band_center_hz
+    above the last band's upper edge get no weight (read-only array, cached: every frame of every
+    channel asks for the same few)."""
     f = np.asarray(f_hz, float)
+    return _band_weights(np.asarray(grid.edges_hz, float).tobytes(), f.tobytes())
+
+
+@lru_cache(maxsize=64)
+def _band_weights(edges_bytes: bytes, f_bytes: bytes) -> np.ndarray:
+    e = np.frombuffer(edges_bytes)
+    f = np.frombuffer(f_bytes)
+    c = 0.5 * (e[:-1] + e[1:])
     W = np.zeros((c.size, f.size))
     for b in range(c.size):
         w = np.zeros_like(f)
@@ -101,11 +119,12 @@ def band_weights(grid: FrameGrid, f_hz: np.ndarray) -> np.ndarray:
             sel = (f > c[b - 1]) & (f <= c[b])
             w[sel] = (f[sel] - c[b - 1]) / (c[b] - c[b - 1])
         if b == c.size - 1:
-            w[(f > c[b]) & (f < grid.edges_hz[-1])] = 1.0
+            w[(f > c[b]) & (f < e[-1])] = 1.0
         else:
             sel = (f > c[b]) & (f < c[b + 1])
             w[sel] = (c[b + 1] - f[sel]) / (c[b + 1] - c[b])
         W[b] = w
+    W.flags.writeable = False
     return W
 
 

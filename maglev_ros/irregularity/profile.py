@@ -784,13 +784,34 @@ def _finish(acc: _BinAccumulator, specs, warns, biases, cfg, v_band, lam_min, la
 
 
 class _Stream:
-    """Time-ordered buffer of one topic's blocks (time_s, data) with channel names."""
+    """Time-ordered buffer of one topic's blocks (time_s, data) with channel names. Blocks are kept
+    as a list and joined only when read (``t``/``d``): appending one block per message to a
+    30-60 s buffer by concatenation copied the whole buffer every block."""
 
     def __init__(self):
-        self.t = np.zeros(0)
-        self.d = None
+        self._t = [np.zeros(0)]
+        self._d: list = []
         self.channels = None
         self.fs = None
+        self._last = -math.inf
+        self._first = None
+
+    def _join(self):
+        if len(self._t) > 1:
+            self._t = [np.concatenate(self._t)]
+            self._d = [np.vstack(self._d)]
+
+    @property
+    def t(self) -> np.ndarray:
+        self._join()
+        return self._t[0]
+
+    @property
+    def d(self):
+        if self.channels is None:
+            return None
+        self._join()
+        return self._d[0]
 
     def append(self, cd, what: str):
         t = np.asarray(cd.time_s, float)
@@ -800,7 +821,7 @@ class _Stream:
         ch = tuple(cd.channels)
         if self.channels is None:
             self.channels = ch
-            self.d = np.zeros((0, d.shape[1]))
+            self._d = [np.zeros((0, d.shape[1]))]
         elif ch != self.channels:
             raise UserError(f"{what}: channels changed from {self.channels} to {ch} mid-stream")
         if t.size == 0:
@@ -808,20 +829,34 @@ class _Stream:
         fs = getattr(cd, "sample_rate_hz", None)
         if fs:
             self.fs = float(fs)
-        if self.t.size and t[0] <= self.t[-1]:
-            keep = t > self.t[-1]           # drop repeated / out-of-order samples
+        if t[0] <= self._last:
+            keep = t > self._last           # drop repeated / out-of-order samples
             t, d = t[keep], d[keep]
-        self.t = np.concatenate([self.t, t])
-        self.d = np.vstack([self.d, d])
+            if t.size == 0:
+                return
+        self._t.append(t)
+        self._d.append(d)
+        self._last = float(t[-1])
+        if self._first is None:
+            self._first = float(t[0])
+
+    @property
+    def size(self) -> int:
+        return int(sum(x.size for x in self._t))
+
+    def first(self) -> float | None:
+        return self._first
 
     def last(self) -> float:
-        return float(self.t[-1]) if self.t.size else -math.inf
+        return self._last
 
     def drop_before(self, t0: float):
-        i = int(np.searchsorted(self.t, t0))
+        t = self.t
+        i = int(np.searchsorted(t, t0))
         if i > 0:
-            self.t = self.t[i:]
-            self.d = self.d[i:]
+            self._t = [t[i:]]
+            self._d = [self.d[i:]]
+            self._first = float(t[i]) if i < t.size else None
 
     def view(self):
         from types import SimpleNamespace
@@ -897,13 +932,13 @@ class IncrementalProfiler:
                                          sample_rate_hz=cd.sample_rate_hz)
                 self.streams[name].append(cd, what)
         t_avail = min(s.last() for s in self.streams.values())
-        t0 = self.streams["accel"].t[0] if self.streams["accel"].t.size else None
+        t0 = self.streams["accel"].first()
         if t0 is None or not math.isfinite(t_avail):
             return self
         start = self.t_committed if self.t_committed is not None else t0
         if t_avail - start >= self.hop_s + self.margin_s:
             self._process(t_avail - self.margin_s, final=False)
-        self.max_buffer_samples = max(self.max_buffer_samples, self.streams["accel"].t.size)
+        self.max_buffer_samples = max(self.max_buffer_samples, self.streams["accel"].size)
         return self
 
     def _process(self, t_commit_end: float, final: bool, acc=None, cfg=None):

@@ -31,6 +31,7 @@ from .fit import RECALIBRATED, Fits
 from .judge import Judgement
 from .localize import Localization
 from .propose import Proposal
+from .recalibrate import recalibrate
 
 SCHEMA = "maglev-diagnosis/1"
 
@@ -124,6 +125,14 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         final_spec = (final_spec if chosen else rf.spec).with_(resonator=rf.resonator)
         found_missing.append(_resonator_entry(rf, d))
         maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_fin]
+    recal = None
+    if final_spec is not base.spec:
+        progress.stage("re-calibrate the twin with the found physics")
+        recal = recalibrate(cal, final_spec, rd_fin, config)
+        if recal.kept:
+            judged_spec = final_spec
+            final_spec, rd_fin = recal.spec, recal.rd_all
+            maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_fin]
     nr_after, pc_after = fit_report(final_spec, rd_fin)
     missing = [catalogue_entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                            signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
@@ -145,7 +154,9 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "calibration": {"parameters": base.spec.calibrated_values(), "damping": damping.to_dict(),
                         "fit_per_group": _per_group(pc_before, {n: c.group for rd in rd_all
                                                                 for n, c in rd.rec.channels.items()}),
-                        **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {})},
+                        **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
+                        **({"with_found_physics": recal.to_dict(judged_spec if recal.kept else final_spec)}
+                           if recal is not None else {})},
     }
     if disc:
         report["discovery"] = [d for d in disc]

@@ -425,7 +425,7 @@ class InertialProfiler:
         return lam if self.min_wavelength_m is None else max(lam, float(self.min_wavelength_m))
 
     # -- time domain -> samples at positions -------------------------------------------------
-    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k, segment_means=None):
+    def _magnet_samples(self, t, a, g, xref, spd, spec, g0, fs, defl_k, segment_means=None, report_bias=True):
         """Return (x_m, r_m, warnings, bias) for the valid samples of one magnet (time order)."""
         warns = []
         gbad, gw = detect_dropouts(t, g, fs, spec.gap_channel)
@@ -437,7 +437,7 @@ class InertialProfiler:
                                edge_s=self.edge_s, bad=gbad, channel=spec.accel_channel,
                                bias_sigma=self.bias_sigma, bias_floor_mps2=self.bias_floor_mps2,
                                plus_highpassed=np.where(gbad, np.nan, dg),
-                               segment_means=segment_means)
+                               segment_means=segment_means, report_bias=report_bias)
         warns += list(res.warnings)
         r = res.displacement_m
         x = xref + spec.offset_m
@@ -527,13 +527,14 @@ class InertialProfiler:
         return np.where(v < self.stop_speed_mps, v, vs)
 
     def samples(self, accel, gap, position, magnet_offsets_m, nominal_gap_m,
-                deflection=None, channel_pairs=None, segment_means=None):
+                deflection=None, channel_pairs=None, segment_means=None, report_bias: bool = True):
         """Per-magnet position samples before binning (used by fit and the streaming class).
 
         Returns (specs, list of (x_m, r_m, speed_mps) per magnet, warnings, biases, fs); the speed
         is the one the band is judged by (:meth:`band_speed_series`). Needs a fixed corner (see
         :meth:`resolve`). ``segment_means``: per magnet, the ``segment_means`` hook of
-        :func:`~maglev_ros.irregularity.integration.double_integrate` (a piece of a record)."""
+        :func:`~maglev_ros.irregularity.integration.double_integrate` (a piece of a record);
+        ``report_bias`` False: no accelerometer-bias warnings (for callers that discard them)."""
         if self.highpass_hz is None:
             raise UserError("highpass_hz: samples() needs a fixed corner (resolve() sets it)")
         specs = self._specs(accel, gap, magnet_offsets_m, channel_pairs)
@@ -545,7 +546,8 @@ class InertialProfiler:
             g = self._gap_on(t, tg, same, _channel(gap, spec.gap_channel, "/testline/vehicle/gap"))
             w = self._deflection(deflection, t, xref + spec.offset_m, spec, k)
             x, r, wk, b = self._magnet_samples(t, a, g, xref, v, spec, float(nominal_gap_m), fs, w,
-                                               None if segment_means is None else segment_means[k])
+                                               None if segment_means is None else segment_means[k],
+                                               report_bias)
             out.append((x, r, v))
             warns += wk
             biases.append(b)
@@ -953,8 +955,9 @@ class IncrementalProfiler:
                               sample_rate_hz=a_v.sample_rate_hz)
         if a_v.time_s.size < 16:
             return
+        # the tail processed for a live result is processed again when committed: its warnings then
         specs, samp, warns, biases, fs, t = cfg.samples(
-            a_v, g_v, p_v, self.offsets, self.g0, None, self.pairs)
+            a_v, g_v, p_v, self.offsets, self.g0, None, self.pairs, report_bias=not final)
         self.specs = specs
         lo = -math.inf if self.t_committed is None else self.t_committed
         hi = math.inf if final else t_commit_end

@@ -550,7 +550,7 @@ def profile_streamed(src: VehicleTopics, profiler: InertialProfiler, magnet_offs
         # a piece of a segment loses its whole segment's means, not its own
         hooks = [_means_hook(segs[k], first, min_len) for k in range(len(specs))]
         _, samp, _, _, _, _ = cfg.samples(a_ns, g_ns, src.position, magnet_offsets_m,
-                                          g0, None, channel_pairs, hooks)
+                                          g0, None, channel_pairs, hooks, report_bias=False)
         for k, (x, r, vv) in enumerate(samp):
             x, r, vv = x[core], r[core], vv[core]
             keep = np.isfinite(r) & (vv >= slow_mps)

@@ -259,3 +259,35 @@ def test_no_resonator_is_fitted_below_the_quasi_static_band():
                       finder=Finder(), worst_span_fallback=False)
     assert [b for b, _ in searched] == [(0.0, 6.0)]
     assert searched[0][1][0] == pytest.approx(RESONATOR_MIN_HZ) and searched[0][1][1] == pytest.approx(6.72)
+
+
+@pytest.mark.parametrize("mu,ratio", [(0.01, 1.08), (0.02, 0.93)])
+def test_the_own_frequency_that_makes_a_measured_mode_matches_the_two_dof_reduction(mu, ratio):
+    """An ambient mode at f_t: the attachment's own frequency at a given place and mass follows from
+    it (the 2-DOF reduction solved for the attachment stiffness that puts an eigenvalue at f_t)."""
+    from maglev_ros.discrepancy.resonator import _Objective
+    spec = base_spec(_md())
+    modal = guideway_modal(spec)
+    i, span = 1, spec.spans[1]
+    j = int(np.flatnonzero(modal.span_index == i)[0])
+    w1 = modal.omega_rad_s[j]
+    xf = 0.4
+    phi = float(modal.shapes_at([span.start_m + xf * span.length_m])[0, j])
+    ma = mu * span.props.mass_per_length_kg_m * span.length_m
+    wt = ratio * w1
+    # det(K - wt^2 M) = 0 of the 2-DOF system of the test above, solved for ka
+    ka = (w1 ** 2 - wt ** 2) * ma * wt ** 2 / ((w1 ** 2 - wt ** 2) - phi ** 2 * ma * wt ** 2)
+    fa_ref = math.sqrt(ka / ma) / (2 * math.pi)
+    ft = wt / (2 * math.pi)
+    base = BaseFit(spec, np.zeros(5), np.zeros((1, 5)), np.zeros(1), 0)
+    ob = _Objective(base, [], i, (0.5 * ft, 2.0 * ft), 0.1, mode_hz=ft)
+    lf = ob.freq_for_mode(xf, math.log(mu))
+    assert lf is not None
+    assert math.exp(lf) == pytest.approx(fa_ref, rel=0.02)
+    # and the twin with that attachment has the mode (the property itself, on the full FE)
+    res = ob.make((0.0, xf, math.log(mu), math.log(0.02)))
+    aug = resonator_modal(spec, res)
+    assert np.min(np.abs(aug.freq_hz[aug.span_index == i] - ft)) < 1e-3 * ft
+    # no own frequency in the range makes a mode far from any the attachment can reach
+    ob_far = _Objective(base, [], i, (0.95 * ft, 1.05 * ft), 0.1, mode_hz=3.0 * ft)
+    assert ob_far.freq_for_mode(xf, math.log(mu)) is None

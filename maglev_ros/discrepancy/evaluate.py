@@ -484,3 +484,11 @@ def fit_report(spec: ModelSpec, rds: list[RecData], channels=None) -> tuple[floa
         allv += [float(np.sqrt(np.sum((am - at) ** 2))) / den for am, at, den in items]
     pc = {n: float(np.mean(v)) for n, v in per.items()}
     return float(np.sqrt(np.mean(np.square(allv)))) if allv else 0.0, pc
+
+
+def per_group(per_channel: dict, groups: dict) -> dict:
+    """RMS of the per-channel NRMSE within each channel group (``groups``: channel -> group)."""
+    out: dict[str, list] = {}
+    for n, v in per_channel.items():
+        out.setdefault(groups.get(n, "other"), []).append(v)
+    return {g: float(np.sqrt(np.mean(np.square(v)))) for g, v in out.items()}

@@ -158,7 +158,7 @@ class _Objective:
     p = (ln f_a, x / L, ln mu, ln zeta_a) with a soft box (Nelder-Mead has no bounds)."""
 
     def __init__(self, base, rd_train, span_index: int, f_range_hz, zeta_max: float, rigid: bool = False,
-                 target_hz: float | None = None):
+                 target_hz: float | None = None, mode_hz: float | None = None):
         from .fitting import CAL_HI, CAL_LO, PRIOR_SIGMA
         self.base, self.rd_train, self.span_index = base, rd_train, int(span_index)
         self.L = base.spec.spans[span_index].length_m
@@ -174,6 +174,35 @@ class _Objective:
         # the span's first mode the attachment must give (its mass follows from it, see mass_for_target)
         self.target_hz = target_hz
         self._mu: dict = {}
+        # a mode of the span the attachment must make (measured on the ambient recording): its own
+        # frequency follows from its place and mass (see freq_for_mode)
+        self.mode_hz = mode_hz
+        self._f: dict = {}
+
+    def freq_for_mode(self, xf: float, lmu: float) -> float | None:
+        """ln of the own frequency that puts a mode of the span at ``mode_hz`` with the attachment at
+        x = xf L and mass ratio exp(lmu), inside the searched range; None when none does. Bisection
+        on the count of span modes below ``mode_hz``, which drops by one where a mode crosses it."""
+        key = (round(float(xf), 6), round(float(lmu), 6))
+        if key not in self._f:
+            def below(lf):
+                r = Resonator(self.span_index, float(np.clip(xf, 0.02, 0.98)) * self.L, float(math.exp(lf)),
+                              float(math.exp(lmu)), 0.02)
+                m = resonator_modal(self.base.spec, r)
+                return int(np.sum(m.freq_hz[m.span_index == self.span_index] < self.mode_hz))
+            lo, hi = self.box[0]
+            n_lo, n_hi = below(lo), below(hi)
+            if n_lo == n_hi:
+                self._f[key] = None
+            else:
+                for _ in range(14):                 # 2^-14 of the range in ln f: < 0.01 %
+                    mid = 0.5 * (lo + hi)
+                    if below(mid) == n_lo:
+                        lo = mid
+                    else:
+                        hi = mid
+                self._f[key] = 0.5 * (lo + hi)
+        return self._f[key]
 
     def mass_for_target(self, xf: float, lf: float) -> float | None:
         """Mass ratio that puts the span's lowest mode at ``target_hz`` with the attachment at x = xf L
@@ -202,6 +231,10 @@ class _Objective:
 
     def make(self, p) -> Resonator | None:
         lf, xf, lmu, lz = p
+        if self.mode_hz is not None:
+            lf = self.freq_for_mode(xf, lmu)
+            if lf is None:
+                return None
         if self.target_hz is not None:
             mu = self.mass_for_target(xf, lf)
             if mu is None:
@@ -212,7 +245,8 @@ class _Objective:
 
     def cost(self, p) -> float:
         pen = sum(1e3 * (max(0.0, lo - v) + max(0.0, v - hi)) ** 2 for k, (v, (lo, hi)) in enumerate(zip(p, self.box))
-                  if not (k == 2 and self.target_hz is not None))      # the mass follows from the target
+                  if not (k == 2 and self.target_hz is not None)        # the mass follows from the target
+                  and not (k == 0 and self.mode_hz is not None))        # the frequency from the mode
         res = self.make(self.clip(p))
         if res is None:             # no plausible mass gives the measured mode there
             return float(self.base.r0 @ self.base.r0) * 10 + pen
@@ -287,13 +321,17 @@ class ResonatorFinder:
 
     def fit(self, base, rd_train: list[RecData], rd_test: list[RecData], band_hz, span_index: int,
             search_hz=None, zeta_max: float | None = None, rigid: bool = False,
-            target_hz: float | None = None) -> ResonatorFit:
+            target_hz: float | None = None, band_gate: bool = True,
+            mode_hz: float | None = None) -> ResonatorFit:
         """``band_hz``: the located band (the fit must explain the misfit there); ``search_hz``: the
         range of resonator frequencies searched (default: the band widened by ``band_margin``);
         ``zeta_max``: search the damping only up to this (None: up to ``ZETA_BOUNDS``, and a fit
         broader than ``MAX_ATTACHMENT_DAMPING`` is rejected); ``rigid``: fit a rigid point mass
         (position and mass only) instead of a resonator; ``target_hz`` (with ``rigid``): the span's first
-        mode measured in the recordings, from which the mass follows at every trial position."""
+        mode measured in the recordings, from which the mass follows at every trial position;
+        ``band_gate``: the held-out passes' band misfit must drop (False: the band was located on
+        another recording, which the caller checks); ``mode_hz``: a mode of the span the resonator must
+        make (measured on the ambient recording): its own frequency follows from its place and mass."""
         from .fitting import bic
         spec = base.spec
         span = spec.spans[span_index]
@@ -308,7 +346,7 @@ class ResonatorFinder:
         J = np.asarray(base.jac)
         th0 = np.asarray(base.theta, float)
         ob = _Objective(base, rd_train, span_index, (f_lo, f_hi), z_hi, rigid,
-                        target_hz if rigid else None)
+                        target_hz if rigid else None, None if rigid else mode_hz)
         make, cost, project = ob.make, ob.cost, ob.project
         n_sims = ob.n_sims
         if ob.target_hz is not None:
@@ -320,6 +358,27 @@ class ResonatorFinder:
             # cannot tell them: only the other modes and the forced response do)
             rss0 = float(base.r0 @ base.r0)
             x_ok = tuple(sorted(x * L for x, c in tried if rss0 - c >= 0.9 * (rss0 - c_best)))
+        elif ob.mode_hz is not None:
+            x_ok = None
+            # coarse grid: mass x position (the own frequency follows from the measured mode), then a
+            # simplex over position, mass and damping
+            best = None
+            for mu in np.geomspace(MU_BOUNDS[0] * 2, MU_BOUNDS[1] / 2, self.n_freq):
+                for xf in self.x_fracs:
+                    p = np.array([0.0, xf, math.log(mu), math.log(self.zeta0)])
+                    c = cost(p)
+                    if best is None or c < best[0]:
+                        best = (c, p)
+            def cost3(q):
+                return cost(np.concatenate([[0.0], q]))
+            q0 = best[1][1:]
+            res_opt = minimize(cost3, q0, method="Nelder-Mead",
+                               options={"maxfev": self.max_refine, "xatol": 1e-3, "fatol": 1e-9,
+                                        "initial_simplex": np.vstack([q0, q0 + np.diag([0.08, 0.7, 0.7])])})
+            p = np.concatenate([[0.0], res_opt.x]) if res_opt.fun <= best[0] else best[1]
+            res = make(ob.clip(p))
+            if res is None:
+                raise ValueError(f"no attachment within the searched range makes the measured {mode_hz:.2f} Hz mode")
         else:
             x_ok = None
             # coarse grid: frequency x position
@@ -353,7 +412,7 @@ class ResonatorFinder:
         plaus = self._plausible(res, f_lo, f_hi, zeta_max)
         # it must explain the located finding itself: the held-out guideway misfit in the band
         band_before, band_after = self._band_misfit(spec, None, fitted, res, rd_test, band_hz[0], band_hz[1])
-        if not band_after <= (1 - self.min_band_gain) * band_before:
+        if band_gate and not band_after <= (1 - self.min_band_gain) * band_before:
             why = (f"it does not explain the located {band_hz[0]:.0f}-{band_hz[1]:.0f} Hz misfit (held-out band NRMSE "
                    f"{band_before:.3f} -> {band_after:.3f}, needs a {100 * self.min_band_gain:.0f} % drop): its gain "
                    f"is elsewhere, i.e. it only absorbs small model errors")

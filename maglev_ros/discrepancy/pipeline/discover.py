@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from maglev_ros.progress import NULL, Progress
 
 from ..air_springs import AirSpringTermFinder
-from ..discovery import discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
+from ..discovery import AMBIENT_SOURCE, discover, mode_shift_findings, model_discoveries, persistent_findings, resonator_explainable
 from ..evaluate import fit_report, model_powers
 from ..localize import residual_map
 from ..model import ModelSpec, guideway_modal
@@ -208,7 +208,7 @@ def ambient_mode_findings(cal: Calibration, loc: Localization) -> list[dict]:
              "channels": list(dm.channels), "sensed_on": "guideway",
              "location": {"position_m": [sp.start_m, sp.end_m], "span": sp.span_id},
              "time_s": [float(rec.t0_s), float(rec.t1_s)], "twin_modes_in_band_hz": [], "score": float(m.peak_ratio),
-             "rank": 2, "source": "ambient modes",
+             "rank": 2, "source": AMBIENT_SOURCE, "mode_hz": float(m.freq_hz),
              "explanation": (f"The ambient recording of span {sp.span_id} rings at {m.freq_hz:.1f} Hz "
                              f"(damping {100 * m.damping_ratio:.1f} %, spectral peak {m.peak_ratio:.1f}x the local level), "
                              f"where the twin has no mode of that span")}

@@ -19,7 +19,7 @@ from maglev_ros.progress import NULL, Progress
 from .. import catalogue as cat
 from ..acceptance import Verdict
 from ..catalogue import VEHICLE_WIDE
-from ..evaluate import fit_report, model_powers
+from ..evaluate import fit_report, model_powers, per_group
 from ..fitting import IDENTIFIABLE_LLR, HypFit, profile_spread
 from ..localize import Mismatch, region_after, residual_map
 from ..model import ModelSpec
@@ -152,7 +152,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "updated_parameters": final_spec.calibrated_values(),
         "parameter_details": _parameter_details(nominal, final_spec),
         "calibration": {"parameters": base.spec.calibrated_values(), "damping": damping.to_dict(),
-                        "fit_per_group": _per_group(pc_before, {n: c.group for rd in rd_all
+                        "fit_per_group": per_group(pc_before, {n: c.group for rd in rd_all
                                                                 for n, c in rd.rec.channels.items()}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
                         **({"with_found_physics": recal.to_dict(judged_spec if recal.kept else final_spec)}
@@ -162,7 +162,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         report["discovery"] = [d for d in disc]
     groups = {n: c.group for rd in rd_all for n, c in rd.rec.channels.items()}
     for key, pc in (("fit_before", pc_before), ("fit_after", pc_after)):
-        report[key]["per_group"] = _per_group(pc, groups)
+        report[key]["per_group"] = per_group(pc, groups)
     report["irregularity"] = ([_irregularity_summary(p) for p in passes]
                               + [{"note": _named(n, [*raw_passes, ambient])} for n in notes])
     extras = {"rd_all": rd_all, "rd_after": rd_fin, "maps_before": maps, "maps_after": maps_after, "base_spec": base.spec,
@@ -261,14 +261,6 @@ def _resonator_entry(rf, d: dict) -> dict:
             "evidence": {"heldout_nrmse_before": m["evidence"]["heldout_nrmse_before"],
                          "heldout_nrmse_after": m["evidence"]["heldout_nrmse_after"],
                          "delta_bic": m["evidence"]["delta_bic"]}}
-
-
-def _per_group(per_channel: dict, groups: dict) -> dict:
-    """RMS of the per-channel NRMSE within each channel group."""
-    out: dict[str, list] = {}
-    for n, v in per_channel.items():
-        out.setdefault(groups.get(n, "other"), []).append(v)
-    return {g: float(np.sqrt(np.mean(np.square(v)))) for g, v in out.items()}
 
 
 def _irregularity_summary(rec: Recording) -> dict:

@@ -151,7 +151,7 @@ def test_a_detuned_span_is_the_first_finding_and_is_modelled_as_an_added_mass():
     calls = []
 
     class Finder:
-        def fit(self, base, tr, te, band_hz, span_index, search, zeta_max=None, rigid=False, target_hz=None):
+        def fit(self, base, tr, te, band_hz, span_index, search, zeta_max=None, rigid=False, target_hz=None, **kw):
             calls.append(dict(band=tuple(band_hz), span=span_index, search=search, rigid=rigid, target=target_hz,
                               zeta_max=zeta_max))
             return SimpleNamespace(accepted=False, verdict=None, to_dict=lambda: {"accepted": False},

@@ -75,6 +75,7 @@ class ModeDamping:
     mac: float | None                   # MAC of the matched shape with the twin's (best MAC if none)
     mode_id: str | None                 # id of the identified mode (M1, ...)
     reason: str
+    std_freq_hz: float | None = None    # the identification's standard error of the frequency
 
     @property
     def matched(self) -> bool:
@@ -85,7 +86,8 @@ class ModeDamping:
                 "twin_damping_ratio": float(self.twin_damping_ratio), "freq_hz": _f(self.freq_hz),
                 "damping_ratio": _f(self.damping_ratio), "std_damping_ratio": _f(self.std_damping_ratio),
                 "cluster_std_damping_ratio": _f(self.cluster_std_damping_ratio), "mac": _f(self.mac),
-                "mode_id": self.mode_id, "matched": self.matched, "reason": self.reason}
+                "mode_id": self.mode_id, "matched": self.matched, "reason": self.reason,
+                "std_freq_hz": _f(self.std_freq_hz)}
 
 
 @dataclass(frozen=True)
@@ -346,7 +348,8 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec) -> MeasuredDampi
             why += "; no uncertainty: not used"
         modes.append(ModeDamping(**base, freq_hz=float(m.frequency_hz), damping_ratio=float(m.damping_ratio),
                                  std_damping_ratio=sz, cluster_std_damping_ratio=cs,
-                                 mac=float(m_ij[best, jj]), mode_id=m.id, reason=why))
+                                 mac=float(m_ij[best, jj]), mode_id=m.id, reason=why,
+                                 std_freq_hz=_f(getattr(m, "std_frequency_hz", None))))
     modes = tuple(modes)
     if n_id and x.size:
         common["extra_modes"] = _extra_modes(res, d_ij, m_ij, twin_f, ambient, vert, col)

@@ -49,12 +49,13 @@ class Mismatch:
     group: str = ""
     recording: str = ""
     peer_amplitude_ratio: float | None = None     # persistent misfits: amplitude ratio to the peers'
+    explanation: str = ""                         # what it means, where the band alone does not say it
 
     def to_dict(self) -> dict:
         return {"channels": list(self.channels), "time_s": [float(self.time_s[0]), float(self.time_s[1])],
                 "position_m": None if self.position_m is None else [float(x) for x in self.position_m],
                 "frequency_hz": None if self.frequency_hz is None else [float(x) for x in self.frequency_hz],
-                "severity": float(self.severity)}
+                "severity": float(self.severity), **({"explanation": self.explanation} if self.explanation else {})}
 
 
 @dataclass

@@ -3,8 +3,9 @@
 Per pass (and the ambient recording): the residual map of band powers against the calibrated twin
 plus noise floor and the connected regions of it that are mismatches (:mod:`..localize`); band
 misfits of one girder sensor that persist over whole passes; spans whose first mode rings off the
-others' in the free decay after the passes (:mod:`..span_modes`); channel dropouts (a data fact,
-modelled later on every recording).
+others' in the free decay after the passes (:mod:`..span_modes`); the ratio of the instrumented span's
+first two modes on the ambient recording against the twin's (:mod:`..mode_pattern`); channel dropouts
+(a data fact, modelled later on every recording).
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from maglev_ros.progress import NULL, Progress
 
 from ..evaluate import RecData, model_powers, prepare
 from ..localize import Mismatch, ResidualMap, mismatches, persistent_mismatches, residual_map
+from ..mode_pattern import ModePattern, mode_pattern
 from ..recording import Recording
 from ..span_modes import detuned_spans, span_mode_shifts
 from .calibrate import Calibration
@@ -47,6 +49,7 @@ class Localization:
     persistent: list[Mismatch]
     detuned: list                      # span_modes.DetunedSpan
     ambient_map: ResidualMap | None = None   # the ambient recording against the calibrated twin
+    mode_pattern: ModePattern | None = None  # the instrumented span's mode ratio, ambient vs calibrated twin
 
 
 def localize(cal: Calibration, ambient: Recording | None, config, progress: Progress = NULL) -> Localization:
@@ -71,4 +74,7 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     # spans whose first mode rings off the others' in the free decay after the passes (reported;
     # a finding for the discovery, not a reason to fit more catalogue hypotheses)
     detuned = detuned_spans(span_mode_shifts(cal.data.passes, spec))
-    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map)
+    # the ratio of the span's first two modes on the ambient recording: E and density cancel in it
+    # (reported with its own words; not a reason to fit more catalogue hypotheses yet)
+    pattern = mode_pattern(cal.damping, spec, ambient)
+    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map, pattern)

@@ -9,6 +9,7 @@ to before any hypothesis.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -22,6 +23,7 @@ from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, model_powers, per_group
 from ..fitting import IDENTIFIABLE_LLR, HypFit, profile_spread
 from ..localize import Mismatch, region_after, residual_map
+from ..mode_pattern import mode_pattern
 from ..model import ModelSpec
 from ..recording import Recording
 from ..scale_signature import PeerReferencedFit, ScaleSignature
@@ -106,7 +108,6 @@ def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config
 
 def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, jd: Judgement, dc: Discovery,
                  ambient: Recording | None, config, progress: Progress = NULL):
-    progress.stage("report")
     nominal, base, damping = cal.nominal, cal.base, cal.damping
     passes, rd_all = cal.data.passes, cal.data.rd_all
     same_heldout, notes, raw_passes = cal.same_heldout, cal.notes, cal.prepare.raw_passes
@@ -133,6 +134,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
             judged_spec = final_spec
             final_spec, rd_fin = recal.spec, recal.rd_all
             maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_fin]
+    progress.stage("report")
     nr_after, pc_after = fit_report(final_spec, rd_fin)
     missing = [catalogue_entry(hf, v, d, final_spec, local_ev.get(id(hf)),
                            signatures[id(hf)][0] if id(hf) in signatures else sig_of.get(
@@ -146,7 +148,8 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "fit_before": {"nrmse": nr_before, "per_channel": pc_before},
         "fit_after": {"nrmse": nr_after, "per_channel": pc_after},
         "mismatches": _mismatch_entries(found + [s.to_mismatch() for s in detuned], [*raw_passes, ambient],
-                                        _maps_by_source(loc, final_spec, maps_after)),
+                                        _maps_by_source(loc, final_spec, maps_after))
+                      + _pattern_entries(loc, cal, final_spec, ambient, [*raw_passes, ambient]),
         "missing_physics": missing,
         "rejected": rejected,
         "updated_parameters": final_spec.calibrated_values(),
@@ -155,6 +158,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
                         "fit_per_group": per_group(pc_before, {n: c.group for rd in rd_all
                                                                 for n, c in rd.rec.channels.items()}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
+                        **({"mode_pattern": loc.mode_pattern.to_dict()} if loc.mode_pattern else {}),
                         **({"with_found_physics": recal.to_dict(judged_spec if recal.kept else final_spec)}
                            if recal is not None else {})},
     }
@@ -303,6 +307,22 @@ def _mismatch_entries(found: Sequence[Mismatch], recs: Sequence[Recording | None
             e["after_found_physics"] = after
         out.append(e)
     return out
+
+
+def _pattern_entries(loc: Localization, cal: Calibration, final_spec: ModelSpec, ambient: Recording | None,
+                     recs: Sequence[Recording | None]) -> list[dict]:
+    """The instrumented span's mode ratio as a mismatch when it is off the twin's, and whether the twin
+    after (with the found physics) still has it off (``after_found_physics``)."""
+    p = loc.mode_pattern
+    if p is None or not p.flagged:
+        return []
+    e = {**p.to_mismatch().to_dict(), "recording": _named(p.to_mismatch().recording, recs), "time_from_start_s": None}
+    if final_spec is not cal.base.spec:
+        q = mode_pattern(cal.damping, final_spec, ambient)
+        if q is not None:
+            e["after_found_physics"] = {"ratio_shift": math.exp(q.log_ratio_shift) - 1, "standard_errors": q.n_sigma,
+                                        "explained": not q.flagged}
+    return [e]
 
 
 def _maps_by_source(loc: Localization, final_spec: ModelSpec, maps_after: list) -> dict:

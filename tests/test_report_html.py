@@ -225,3 +225,21 @@ def test_json_keeps_its_keys_and_adds_optional_ones(report):
     for k, v in det.items():
         assert v["unit"] and v["updated"] == pytest.approx(rep["updated_parameters"][k]) and v["nominal"] > 0
         assert v["std"] is None or v["std"] > 0
+
+
+def test_a_mismatch_with_its_own_words_is_shown_with_them(report):
+    """A mismatch that is not a band of a residual map (the span's mode pattern) carries an explanation
+    and whether the twin after explains it: the page says both, and the rest of it still renders."""
+    import copy
+    _, d, _ = report
+    rep = copy.deepcopy(d.report)
+    said = "Span S1's first two bending modes ring at 22.00 and 95.00 Hz in the ambient recording."
+    rep["mismatches"].append({"channels": ["G1A"], "time_s": [0.0, 8.0], "position_m": [0.0, 12.384],
+                              "frequency_hz": [22.0, 95.0], "severity": 12.0, "explanation": said,
+                              "recording": "ambient (span S1's mode ratio)", "time_from_start_s": None,
+                              "after_found_physics": {"ratio_shift": 0.031, "standard_errors": 9.0,
+                                                      "explained": False}})
+    page = render(dataclasses.replace(d, report=rep))
+    assert said in page.replace("&#x27;", "'")
+    assert "does not explain it (ratio still +3.1 %)" in page
+    assert "per-channel NRMSE" in page

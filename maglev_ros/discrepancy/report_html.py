@@ -438,6 +438,14 @@ def render(diagnosis) -> str:
                     ["recording", "channels", "time from start [s]", "position [m]", "band [Hz]",
                      "severity [x noise power]"], "mismatches"))
     w.append(_note("severity"))
+    # mismatches that are not a band of a residual map (the span's mode pattern) say what they are
+    for m in rep["mismatches"]:
+        if m.get("explanation"):
+            now = m.get("after_found_physics") or {}
+            tail = ("" if "explained" not in now else
+                    " The twin after " + ("explains it." if now["explained"] else
+                                         f"does not explain it (ratio still {100 * now['ratio_shift']:+.1f} %)."))
+            w.append(f"<p class='disc'>{html.escape(m['explanation'] + tail)} (severity: standard errors)</p>")
     w.append("</section>")
     parts.append("".join(w))
     ch_rows = [[m["effect"], m["category"], ", ".join(m["location"].get("channels") or []) or DASH, m["explanation"],

@@ -316,7 +316,8 @@ def _pattern_entries(loc: Localization, cal: Calibration, final_spec: ModelSpec,
     p = loc.mode_pattern
     if p is None or not p.flagged:
         return []
-    e = {**p.to_mismatch().to_dict(), "recording": _named(p.to_mismatch().recording, recs), "time_from_start_s": None}
+    m = p.to_mismatch()
+    e = {**m.to_dict(), "recording": _named(m.recording, recs), "time_from_start_s": None}
     if final_spec is not cal.base.spec:
         q = mode_pattern(cal.damping, final_spec, ambient)
         if q is not None:

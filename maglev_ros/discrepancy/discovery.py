@@ -291,14 +291,12 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
                 # component tuned below the mode, searched below it
                 search = None if rigid else (RESONATOR_MIN_HZ, f0 * 0.85)
                 zeta_max = MAX_ATTACHMENT_DAMPING
-            # a mode the ambient recording shows was located there (no vehicle): the attachment must
-            # put a mode of its span in that band; in the passes the forced response dominates it
-            ambient = d.get("source") == AMBIENT_SOURCE
+            # a mode the ambient recording shows was located there (no vehicle): the attachment is made
+            # to have it, and is not judged on the passes' band, where the forced response dominates
+            mode_hz = None if rigid else d.get("mode_hz")
             rf = finder.fit(base, rd_train, rd_test, band_fit, idx[d["location"]["span"]], search,
                             zeta_max=zeta_max, rigid=rigid, target_hz=d.get("target_hz") if rigid else None,
-                            band_gate=not ambient, mode_hz=d.get("mode_hz") if ambient and not rigid else None)
-            if ambient and rf.accepted:
-                rf = _with_ambient_mode_check(rf, base.spec, d["frequency_hz"])
+                            band_gate=mode_hz is None, mode_hz=mode_hz)
             if rf.accepted and rigid:
                 # which own frequencies would fit as well? (a component tuned above the mode: mass-like)
                 f_top = _usable_top_hz(rd_train, d["channels"])
@@ -354,7 +352,7 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
             else:
                 d["frequency_hz"] = [float(f * (1 - max(0.05, 2 * rf.resonator.damping_ratio))),
                                      float(f * (1 + max(0.05, 2 * rf.resonator.damping_ratio)))]
-            if d.get("source") == AMBIENT_SOURCE:
+            if d.get("mode_hz") is not None:
                 # the ambient recording measured the coupled mode it makes: the band spans both
                 lo, hi = d["frequency_hz"]
                 d["frequency_hz"] = [min(lo, d["residual_band_hz"][0]), max(hi, d["residual_band_hz"][1])]
@@ -388,22 +386,6 @@ def model_discoveries(disc: list[dict], base, rd_train, rd_test, acceptance, max
 
 
 AMBIENT_SOURCE = "ambient modes"
-
-
-def _with_ambient_mode_check(rf, spec, band_hz):
-    """``rf`` rejected unless the twin with its resonator has a mode of its span in ``band_hz`` (the
-    ambient recording's mode it was fitted for)."""
-    from .acceptance import Verdict
-    from .resonator import resonator_modal
-    modal = resonator_modal(spec.with_(resonator=None), rf.resonator)
-    f = modal.freq_hz[modal.span_index == rf.resonator.span_index]
-    if np.any((f >= band_hz[0]) & (f <= band_hz[1])):
-        return rf
-    near = f[np.argmin(np.abs(f - 0.5 * (band_hz[0] + band_hz[1])))] if f.size else float("nan")
-    v = rf.verdict
-    why = (f"the twin with it has no mode of span {rf.span_id} at the ambient recording's "
-           f"{band_hz[0]:.1f}-{band_hz[1]:.1f} Hz (nearest {near:.1f} Hz)")
-    return replace(rf, verdict=Verdict(False, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic))
 
 
 def _what(d: dict) -> str | None:

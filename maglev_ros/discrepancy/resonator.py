@@ -291,6 +291,34 @@ def _best_position(ob: "_Objective", lf: float, lz: float, grid=(0.1, 0.2, 0.3, 
     return (*best, tried)
 
 
+SIMPLEX_STEPS = np.array([0.04, 0.08, 0.7, 0.7])   # first simplex steps in (ln f, x / L, ln mu, ln zeta)
+
+
+def _grid_then_simplex(cost, starts, free, maxfev: int) -> np.ndarray:
+    """The best of ``starts`` (the first of equals), then a Nelder-Mead simplex over its coordinates
+    ``free`` (the others held); the simplex's point only when it is no worse."""
+    c0, p0 = None, None
+    for p in starts:
+        c = cost(p)
+        if c0 is None or c < c0:
+            c0, p0 = c, p
+    free = list(free)
+
+    def sub(q):
+        p = p0.copy()
+        p[free] = q
+        return cost(p)
+    q0 = p0[free]
+    res = minimize(sub, q0, method="Nelder-Mead",
+                   options={"maxfev": maxfev, "xatol": 1e-3, "fatol": 1e-9,
+                            "initial_simplex": np.vstack([q0, q0 + np.diag(SIMPLEX_STEPS[free])])})
+    if res.fun > c0:
+        return p0
+    p = p0.copy()
+    p[free] = res.x
+    return p
+
+
 def supported_band(profile: list[tuple[float, float]], best_gain: float, share: float = 0.9) -> tuple[float, float]:
     """The frequency range over which a resonator explains at least ``share`` of the best fit's misfit
     reduction (the profile's grid points; ``best_gain`` the fitted resonator's own share)."""
@@ -362,38 +390,18 @@ class ResonatorFinder:
             x_ok = None
             # coarse grid: mass x position (the own frequency follows from the measured mode), then a
             # simplex over position, mass and damping
-            best = None
-            for mu in np.geomspace(MU_BOUNDS[0] * 2, MU_BOUNDS[1] / 2, self.n_freq):
-                for xf in self.x_fracs:
-                    p = np.array([0.0, xf, math.log(mu), math.log(self.zeta0)])
-                    c = cost(p)
-                    if best is None or c < best[0]:
-                        best = (c, p)
-            def cost3(q):
-                return cost(np.concatenate([[0.0], q]))
-            q0 = best[1][1:]
-            res_opt = minimize(cost3, q0, method="Nelder-Mead",
-                               options={"maxfev": self.max_refine, "xatol": 1e-3, "fatol": 1e-9,
-                                        "initial_simplex": np.vstack([q0, q0 + np.diag([0.08, 0.7, 0.7])])})
-            p = np.concatenate([[0.0], res_opt.x]) if res_opt.fun <= best[0] else best[1]
+            p = _grid_then_simplex(cost, [np.array([0.0, xf, math.log(mu), math.log(self.zeta0)])
+                                          for mu in np.geomspace(MU_BOUNDS[0] * 2, MU_BOUNDS[1] / 2, self.n_freq)
+                                          for xf in self.x_fracs], (1, 2, 3), self.max_refine)
             res = make(ob.clip(p))
             if res is None:
                 raise ValueError(f"no attachment within the searched range makes the measured {mode_hz:.2f} Hz mode")
         else:
             x_ok = None
-            # coarse grid: frequency x position
-            best = None
-            for f in np.geomspace(f_lo, f_hi, self.n_freq):
-                for xf in self.x_fracs:
-                    p = np.array([math.log(f), xf, math.log(self.mass_ratio0), math.log(self.zeta0)])
-                    c = cost(p)
-                    if best is None or c < best[0]:
-                        best = (c, p)
-            simplex = np.vstack([best[1], best[1] + np.diag([0.04, 0.08, 0.7, 0.7])])
-            res_opt = minimize(cost, best[1], method="Nelder-Mead",
-                               options={"maxfev": self.max_refine, "xatol": 1e-3, "fatol": 1e-9,
-                                        "initial_simplex": simplex})
-            p = res_opt.x if res_opt.fun <= best[0] else best[1]
+            # coarse grid: frequency x position, then a simplex over all four
+            p = _grid_then_simplex(cost, [np.array([math.log(f), xf, math.log(self.mass_ratio0), math.log(self.zeta0)])
+                                          for f in np.geomspace(f_lo, f_hi, self.n_freq) for xf in self.x_fracs],
+                                   (0, 1, 2, 3), self.max_refine)
             res = make(ob.clip(p))
         r = residual_vector(spec.with_(resonator=res), rd_train)
         rp, d = project(r)

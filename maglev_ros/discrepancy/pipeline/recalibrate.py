@@ -24,17 +24,18 @@ from .calibrate import Calibration
 
 @dataclass(frozen=True, eq=False)
 class Recalibration:
-    spec: ModelSpec                    # the twin after: re-calibrated when that held, else as judged
+    judged: ModelSpec                  # the twin after as judged (calibrated + chosen physics)
+    spec: ModelSpec                    # the twin after: re-calibrated when that held, else ``judged``
     rd_all: list                       # every pass as that twin sees it
     heldout_before: float              # held-out NRMSE of the twin after as judged
     heldout_after: float               # ... re-calibrated with the physics (inf: not tried)
     kept: bool
     why: str
 
-    def to_dict(self, spec_before: ModelSpec) -> dict:
+    def to_dict(self) -> dict:
         return {"kept": self.kept, "heldout_nrmse_as_judged": self.heldout_before,
                 "heldout_nrmse_recalibrated": self.heldout_after, "why": self.why,
-                "parameters_as_judged": spec_before.calibrated_values(),
+                "parameters_as_judged": self.judged.calibrated_values(),
                 "parameters_recalibrated": self.spec.calibrated_values() if self.kept else None}
 
 
@@ -48,9 +49,9 @@ def recalibrate(cal: Calibration, spec: ModelSpec, rd_all: list, config) -> Reca
         rd_new = cal.prepare(bf.spec, log=None).rd_all
         held1, pc1 = fit_report(bf.spec, test(rd_new))
     except (FloatingPointError, ValueError, ZeroDivisionError, np.linalg.LinAlgError) as exc:
-        return Recalibration(spec, rd_all, held0, float("inf"), False, f"re-calibration failed ({exc})")
+        return Recalibration(spec, spec, rd_all, held0, float("inf"), False, f"re-calibration failed ({exc})")
     if not held1 < held0:
-        return Recalibration(spec, rd_all, held0, held1, False,
+        return Recalibration(spec, spec, rd_all, held0, held1, False,
                              f"re-calibrating with the found physics did not fit the held-out passes better "
                              f"({held0:.3f} -> {held1:.3f}): the parameters as judged are kept")
     tol = 1 + 0.5 * config.acceptance.min_rel_gain
@@ -58,8 +59,8 @@ def recalibrate(cal: Calibration, spec: ModelSpec, rd_all: list, config) -> Reca
     worse = {g: (g0[g], g1[g]) for g in g0 if g in g1 and g1[g] > g0[g] * tol}
     if worse:
         said = ", ".join(f"{g} {a:.3f} -> {b:.3f}" for g, (a, b) in sorted(worse.items()))
-        return Recalibration(spec, rd_all, held0, held1, False,
+        return Recalibration(spec, spec, rd_all, held0, held1, False,
                              f"re-calibrating with the found physics fit the held-out passes better as a whole "
                              f"({held0:.3f} -> {held1:.3f}) but worse on {said}: the parameters as judged are kept")
-    return Recalibration(bf.spec, rd_new, held0, held1, True,
+    return Recalibration(spec, bf.spec, rd_new, held0, held1, True,
                          f"re-calibrated with the found physics: held-out NRMSE {held0:.3f} -> {held1:.3f}")

@@ -131,7 +131,6 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         progress.stage("re-calibrate the twin with the found physics")
         recal = recalibrate(cal, final_spec, rd_fin, config)
         if recal.kept:
-            judged_spec = final_spec
             final_spec, rd_fin = recal.spec, recal.rd_all
             maps_after = [residual_map(rd, model_powers(final_spec, rd)) for rd in rd_fin]
     progress.stage("report")
@@ -159,8 +158,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
                                                                 for n, c in rd.rec.channels.items()}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
                         **({"mode_pattern": loc.mode_pattern.to_dict()} if loc.mode_pattern else {}),
-                        **({"with_found_physics": recal.to_dict(judged_spec if recal.kept else final_spec)}
-                           if recal is not None else {})},
+                        **({"with_found_physics": recal.to_dict()} if recal is not None else {})},
     }
     if disc:
         report["discovery"] = [d for d in disc]

@@ -377,6 +377,8 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
         i = np.searchsorted(front, t, side="left")
         return np.where(i < front.size, w_in[np.minimum(i, front.size - 1)], np.nan)
 
+    # a topic the probe subscribed ahead that no node of this graph published: not part of the run
+    topics = {t: e for t, e in topics.items() if e["rows"] or pubs.get(t)}
     topic_rows = []
     for t in sorted(topics):
         e = topics[t]

@@ -2,7 +2,7 @@
 
     python bench/keepup_probe.py OUT.json [--namespace NS] [--reliable] [--max-s S]
 
-Subscribes (topics discovered every 0.5 s) every SensorBlock, ModalEstimate, IrregularityProfile,
+Subscribes (the graph's known outputs from its start, other topics as discovered every 0.5 s) every SensorBlock, ModalEstimate, IrregularityProfile,
 MismatchReport, TwinParameters and std_msgs/String topic under ``NS/testline/`` and ``NS/maglev/``,
 and ``/diagnostics``. For each message it keeps the DDS publish time (``source_timestamp``: when
 the writer sent it), the probe's receive time, the writer's sequence number and the header stamp
@@ -31,7 +31,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message  # noqa: E402
 from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
-from maglev_ros.nodes._common import message_class  # noqa: E402
+from maglev_ros.nodes._common import LATCHED_TOPICS, message_class  # noqa: E402
+from maglev_ros.nodes.summary import KNOWN_TOPICS  # noqa: E402
 from maglev_ros.sensor_block import SensorBlockDecoder  # noqa: E402
 
 SENSOR_BLOCK = "maglev_msgs/msg/SensorBlock"
@@ -176,6 +177,12 @@ def main(argv=None) -> int:
         msgtype, name = spec.split(":", 1)
         if name not in probe.subs:
             probe.subscribe(name, msgtype, latched=msgtype == STRING)
+    # the graph's outputs from the start too: found by the 0.5 s discovery instead, a node's first
+    # outputs could be published before the probe subscribed and matched (then counted as lost)
+    for name, msgtype in KNOWN_TOPICS.items():
+        full = f"{a.namespace.rstrip('/')}{name}"
+        if name.startswith("/maglev/") and full not in probe.subs:
+            probe.subscribe(full, msgtype, latched=name in LATCHED_TOPICS)
     ex = SingleThreadedExecutor()
     ex.add_node(node)
     if a.ready_file:

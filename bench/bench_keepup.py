@@ -60,9 +60,11 @@ sys.path.insert(0, str(ROOT))
 SENSOR_BLOCK = "maglev_msgs/msg/SensorBlock"
 STRING = "std_msgs/msg/String"
 # a node "falls behind" when its lag grows by at least this much per stream second (it runs at
-# < 98 % of the stream's pace) AND by more than GROWTH_VS_SCATTER x the scatter of its lag
+# < 98 % of the stream's pace) AND the growth is significant: the OLS slope's t statistic over its
+# one-sided Student-t quantile at TREND_ALPHA (a few 1 Hz /diagnostics points with one late report
+# are no trend; hundreds of results with a small steady growth are)
 SLOPE_MIN = 0.02
-GROWTH_VS_SCATTER = 3.0
+TREND_ALPHA = 0.01
 N_LAG_SAMPLES = 400
 # a node that takes its last block more than this after the replay's last one did not keep up
 # (twice the /diagnostics period the figure is read from)
@@ -132,7 +134,11 @@ class CpuSampler:
     """CPU time (user + system, all threads) of this process's child processes (the graph's nodes,
     the probe), read from /proc every ``period_s`` with the time of reading (the DDS timestamps'
     clock): a node's cost in CPU seconds per stream second, which the machine's load does not change
-    (written by hand: a few lines of /proc parsing; psutil is not a dependency)."""
+    (written by hand: a few lines of /proc parsing; psutil is not a dependency). Each row is
+    [time_ns, cpu_s, background_cpu_s]: the last is what the node's background threads used (those
+    niced below its main thread, ``nodes._common.background_thread``: a diagnosis, the magnet
+    layer), summed per thread between readings (a thread that ends between two readings loses its
+    last interval to the total's other part)."""
 
     def __init__(self, period_s: float = 0.5) -> None:
         import threading
@@ -141,6 +147,8 @@ class CpuSampler:
         self._names: dict[int, str | None] = {}
         self._stop = threading.Event()
         self._tick = os.sysconf("SC_CLK_TCK")
+        self._threads: dict[tuple[int, int], float] = {}   # (pid, tid) -> its cpu_s at the last reading
+        self._background: dict[int, float] = {}            # pid -> background cpu_s since first seen
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def __enter__(self):
@@ -175,6 +183,30 @@ class CpuSampler:
         total = sum(f[:8])                                           # guest time is in user already
         self.series.setdefault("(machine)", []).append([now, (total - idle) / self._tick, total / self._tick])
 
+    def _background_of(self, pid: int, base_nice: int) -> float:
+        """Cumulative CPU of ``pid``'s threads niced below its main thread (``base_nice``)."""
+        first = pid not in self._background
+        total = self._background.setdefault(pid, 0.0)
+        try:
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            return total
+        for tid in tids:
+            try:
+                stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+            except OSError:
+                continue
+            f = stat[stat.rindex(")") + 2:].split()
+            cpu = (int(f[11]) + int(f[12])) / self._tick
+            key = (pid, int(tid))
+            # a thread first seen in a known process started since the last reading: all of it counts
+            last = self._threads.get(key, cpu if first else 0.0)
+            self._threads[key] = cpu
+            if int(f[16]) > base_nice:
+                total += cpu - last
+        self._background[pid] = total
+        return total
+
     def _run(self) -> None:
         me = os.getpid()
         while not self._stop.is_set():
@@ -193,7 +225,7 @@ class CpuSampler:
                 name = self._name(int(d))
                 if name:
                     cpu = (int(fields[11]) + int(fields[12])) / self._tick     # utime + stime
-                    self.series.setdefault(name, []).append([now, cpu])
+                    self.series.setdefault(name, []).append([now, cpu, self._background_of(int(d), int(fields[16]))])
             self._stop.wait(self.period_s)
 
 
@@ -316,7 +348,8 @@ def _trend(stamp_s: np.ndarray, delay_s: np.ndarray, rate: float, min_n: int,
     rate), against that stream time, over the second half of the stamps it reached (the twin's
     designed lag builds up first; results after the replay's end count too, so a short replay at a
     high rate still shows the trend; only results that reach a newer stream time count). OLS slope (stream s of lag per stream s), the growth it
-    predicts over that half and the scatter around the line. None with fewer than ``min_n`` points.
+    predicts over that half, the scatter around the line and the slope's t statistic. None with
+    fewer than ``min_n`` points.
     ``second_half`` False: every point (a node's intake has no designed lag to build up)."""
     ok = np.isfinite(stamp_s) & np.isfinite(delay_s)
     x, y = stamp_s[ok], delay_s[ok] * rate
@@ -331,11 +364,15 @@ def _trend(stamp_s: np.ndarray, delay_s: np.ndarray, rate: float, min_n: int,
         x, y = x[half], y[half]
     if x.size < min_n or np.ptp(x) <= 0:
         return None
-    coef = np.polyfit(x, y, 1)                      # numpy's least squares
-    slope, scatter = float(coef[0]), float(np.std(y - np.polyval(coef, x)))
+    from scipy import stats
+    fit = stats.linregress(x, y)                    # OLS with the slope's standard error
+    slope = float(fit.slope)
+    scatter = float(np.std(y - (fit.intercept + fit.slope * x)))
     growth = slope * float(np.ptp(x))
-    return {"slope": slope, "scatter_s": scatter, "growth_s": growth, "n": int(x.size),
-            "falls_behind": bool(slope >= SLOPE_MIN and growth > GROWTH_VS_SCATTER * scatter)}
+    t = slope / fit.stderr if fit.stderr > 0 else (np.inf if slope > 0 else 0.0)
+    t_crit = float(stats.t.ppf(1.0 - TREND_ALPHA, x.size - 2)) if x.size > 2 else np.inf
+    return {"slope": slope, "scatter_s": scatter, "growth_s": growth, "n": int(x.size), "t": float(t),
+            "falls_behind": bool(slope >= SLOPE_MIN and t > t_crit)}
 
 
 def _node_names(names) -> list[str]:
@@ -480,8 +517,12 @@ def analyse(probe: dict, requested_rate: float, replay_log=()) -> dict:
                 until, got = w_end, _stream_by(res, diag, outs, w0, s0, w_end, topics, subs, node)
             during = sel & (c_t <= until + 0.5)
             if during.sum() >= 2 and got:
-                res["stream_cpu_s"] = float(c[during, 1][-1] - c[during, 1][0])
+                # its background threads' work (a diagnosis, the magnet layer) yields to stream work
+                bg = float(c[during, 2][-1] - c[during, 2][0]) if c.shape[1] > 2 else 0.0
+                res["stream_cpu_s"] = float(c[during, 1][-1] - c[during, 1][0]) - bg
                 res["stream_cores_at_rate"] = res["stream_cpu_s"] / got * requested_rate
+                res["background_cpu_s"] = bg
+                res["background_cores"] = bg / max(float(c_t[during][-1] - c_t[during][0]), 1e-9)
         res["output_trend"], res["input_trend"] = out_trend, in_trend
         trends = [tr for tr in (out_trend, in_trend) if tr]
         late = "last_block_taken_s" in res and (res["last_block_taken_s"] is None
@@ -655,7 +696,11 @@ def print_run(r: dict, peer: dict | None) -> None:
           "(out) or took (in); last in: when it had taken every block, after the replay's last; delay: "
           "replay publish -> output at the probe; x real time: the node's output stream s per wall s, "
           "/replay: over the replay's achieved rate; cores at rate: its CPU while the replay ran per stream s "
-          "it got through, x the rate: the cores it needs to keep up)")
+          "it got through, x the rate: the cores it needs to keep up, its background threads' left out)")
+    bg = {node: n["background_cores"] for node, n in sorted(r["nodes"].items()) if n.get("background_cores", 0) > 0.01}
+    if bg:
+        print("  background threads (niced: they yield to the stream work) used meanwhile: "
+              + ", ".join(f"{node} {c:.2f} cores" for node, c in bg.items()))
     print(f"  {'topic':44s} {'role':6s} {'received':>8s} {'published':>9s} {'lost':>5s}  publisher -> subscribers")
     for t in r["topics"]:
         print(f"  {t['topic']:44s} {t['role']:6s} {t['received']:8d} {t.get('published', 0):9d} "

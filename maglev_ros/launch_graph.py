@@ -27,12 +27,14 @@ class NodeSpec:
     # ends by itself once the replay has finished (the demo's summary): the launcher waits for it
     # before stopping the others
     finishes: bool = False
+    # declares ``stream_rate``: the launcher passes the replay's rate (output periods meant in wall time)
+    takes_stream_rate: bool = False
 
 
 GRAPHS: dict[str, list[NodeSpec]] = {
     "monitor": [
         NodeSpec("replay", "maglev_ros.nodes.replay", needs_bag=True),
-        NodeSpec("irregularity", "maglev_ros.nodes.irregularity", runs_until_stopped=True),
+        NodeSpec("irregularity", "maglev_ros.nodes.irregularity", runs_until_stopped=True, takes_stream_rate=True),
         NodeSpec("modal_id", "maglev_ros.nodes.modal_id", runs_until_stopped=True),
         # history_path: set by the launcher in its output directory (unset: memory only)
         NodeSpec("updater", "maglev_ros.nodes.updater", runs_until_stopped=True),
@@ -40,7 +42,7 @@ GRAPHS: dict[str, list[NodeSpec]] = {
         # the twin measures the irregularity under the vehicle itself (irregularity_source
         # "vehicle"; see maglev_ros.twin.online) and judges vehicle channels only where it has
         NodeSpec("twin", "maglev_ros.nodes.twin", params={"irregularity_source": "vehicle", "dt_max_s": 5e-4},
-                 runs_until_stopped=True),
+                 runs_until_stopped=True, takes_stream_rate=True),
     ],
 }
 
@@ -241,9 +243,18 @@ def node_launches(graph_name: str, bag: str | None = None, overrides: dict | Non
                 params["results_timeout_s"] = float(results_timeout_s)
         elif use_sim_time:
             params["use_sim_time"] = True
+        if spec.takes_stream_rate and bags:
+            params["stream_rate"] = _replay_rate(overrides.get("replay", {}))
         params.update(overrides.get(spec.name, {}))
         out.append(NodeLaunch(spec.name, spec.module, params, ns, remaps, params_file or None, spec))
     return out
+
+
+def _replay_rate(replay_params: dict) -> float:
+    """The replay's pace in bag seconds per wall second (1 when unpaced: its pace is unknown)."""
+    if replay_params.get("fast"):
+        return 1.0
+    return float(replay_params.get("rate", 1.0))
 
 
 def ros_args(nl: NodeLaunch) -> list[str]:

@@ -121,6 +121,15 @@ def test_trend_tells_a_growing_lag_from_a_steady_one():
     built_up = np.minimum(stamp, 6.0) / rate
     assert not bk._trend(stamp, built_up, rate, bk.MIN_POINTS)["falls_behind"]
     assert bk._trend(stamp[:3], steady[:3], rate, bk.MIN_POINTS) is None
+    # six 1 Hz reports, one of them late: a slope no t test at 1 % tells from the scatter
+    few = np.linspace(0.0, 60.0, 6)
+    one_late = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 4.1]) / rate
+    tr = bk._trend(few, one_late, rate, bk.MIN_POINTS, second_half=False)
+    assert tr["slope"] >= bk.SLOPE_MIN and not tr["falls_behind"]
+    # six reports of a lag growing steadily: a trend
+    tr = bk._trend(few, (0.1 + 0.2 * few + 0.05 * rng.standard_normal(6)) / rate, rate, bk.MIN_POINTS,
+                   second_half=False)
+    assert tr["falls_behind"]
 
 
 def test_the_machines_share_is_its_busy_time_minus_this_runs():

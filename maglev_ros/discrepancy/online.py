@@ -398,7 +398,8 @@ class OnlineDetector:
             floor = np.percentile(np.array(hist), 20, axis=0) + 1e-300
             ratio = p / floor
             active = usable & (ratio > self._thresholds(fs))
-            cell = self._offline_cell(ch, tend, t, x, floor)
+            # the offline view only decides bands that are active: a quiet frame needs no measured power
+            cell = self._offline_cell(ch, tend, t, x, floor) if active.any() else None
             over = self._over(ch, p, fs, cell)
             reported = active & (over > 1.0)
             if cell is not None:

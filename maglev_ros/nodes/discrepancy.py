@@ -58,7 +58,7 @@ from maglev_msgs.msg import MismatchReport, SensorBlock
 from maglev_ros.contract import DATA_TOPICS, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.discrepancy.online import OnlineDetector
 from maglev_ros.errors import ContractError
-from maglev_ros.nodes._common import BlockGate, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, background_thread, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 from maglev_ros.nodes._params import Param, declare
 from maglev_ros.nodes._qos import local_topic, publisher, subscription
@@ -312,6 +312,7 @@ class DiscrepancyNode(Node):
         self._queue.put(rec)
 
     def _diagnose_queue(self) -> None:
+        background_thread()          # a diagnosis takes tens of CPU seconds: the streams come first
         while True:
             rec = self._queue.get()
             self.get_logger().info(f"recording complete ({rec.kind}, {rec.t1_s - rec.t0_s:.1f} s)"

@@ -3,8 +3,9 @@
 Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position}; feeds
 :class:`maglev_ros.irregularity.profile.IncrementalProfiler`; publishes the profile on
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
-profile whenever it joins) every ``publish_period_s`` of STREAM time when it has grown (never an
-all-NaN one). The blocks are fed in (stamp, topic) order whatever order DDS delivers the topics in
+profile whenever it joins) every ``publish_period_s`` x max(1, ``stream_rate``) of STREAM time when
+it has grown (never an all-NaN one): about every ``publish_period_s`` of wall time whatever the
+replay's rate, which the launcher passes as ``stream_rate``. The blocks are fed in (stamp, topic) order whatever order DDS delivers the topics in
 (:mod:`maglev_ros.stream_order`), and each live profile is that of a copy of the profiler taken
 when the ordered stream reaches its mark (every block stamped before it, none after), computed on
 a worker thread (its ``result()`` re-processes the buffered tail: a few tenths of a second, which
@@ -24,7 +25,7 @@ on the same worker, after any live one (the node says ``busy`` until it is publi
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
 spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
 15 km/h; the recording's profile at the verb's default), max_profile_m (0: unbounded),
-publish_period_s (1.0 s of stream), max_recording_s (1800); each with its description and range in
+publish_period_s (1.0 s), stream_rate (1.0), max_recording_s (1800); each with its description and range in
 ``PARAMS``.
 """
 from __future__ import annotations
@@ -68,8 +69,14 @@ PARAMS = (
     Param("band_speed_mps", 0.0, "speed that sets the valid wavelength band [m/s] (0: 80% of the "
                                  "metadata's nominal speed, else 15 km/h)", range=(0.0, 200.0)),
     Param("max_profile_m", 0.0, "longest profile kept [m] (0: unbounded)", range=(0.0, 1e7)),
-    Param("publish_period_s", 1.0, "stream-time period of publishing the grown profile [s]",
-          range=(0.01, 1e9), apply=lambda node, v: node.set_publish_period(v)),
+    Param("publish_period_s", 1.0, "period of publishing the grown profile, in stream time at real time "
+                                   "(every publish_period_s x max(1, stream_rate) of stream) [s]",
+          range=(0.01, 1e9), apply=lambda node, v: node.set_publish_period(period_s=v)),
+    # a live profile re-processes tens of seconds of the tail: at 10x, one per stream second would
+    # be ten per wall second; one per wall second is what a viewer sees anyway
+    Param("stream_rate", 1.0, "bag seconds per wall second of the streams (the launcher sets the replay's "
+                              "rate; 1 for live data): stretches the live profiles' stream-time period",
+          range=(0.1, 100.0), apply=lambda node, v: node.set_publish_period(stream_rate=v)),
     Param("max_recording_s", 1800.0, "keep at most this much stream of a recording for its end-of-recording "
                                      "profile [s]", range=(0.0, 1e7)),
 )
@@ -83,7 +90,8 @@ class IrregularityNode(Node):
         self.spacing_m = v["spacing_m"]
         self.band_speed_mps = v["band_speed_mps"]
         self.max_profile_m = v["max_profile_m"]
-        self.period_ns = int(round(v["publish_period_s"] * 1e9))
+        self.publish_period_s, self.stream_rate = float(v["publish_period_s"]), float(v["stream_rate"])
+        self.period_ns = self._period_ns()
         self.max_recording_s = float(v["max_recording_s"])
         self.profiler = None
         self.metadata = None
@@ -117,9 +125,16 @@ class IrregularityNode(Node):
         self.diagnostics.add_check(self._worker_check)
         self.lifecycle = NodeLifecycle(self, diagnostics=self.diagnostics)
 
-    def set_publish_period(self, period_s: float) -> None:
-        """The ``publish_period_s`` parameter's live change (from the next mark on)."""
-        self.period_ns = int(round(period_s * 1e9))
+    def _period_ns(self) -> int:
+        return int(round(self.publish_period_s * max(1.0, self.stream_rate) * 1e9))
+
+    def set_publish_period(self, period_s: float | None = None, stream_rate: float | None = None) -> None:
+        """A live change of ``publish_period_s`` or ``stream_rate`` (from the next mark on)."""
+        if period_s is not None:
+            self.publish_period_s = float(period_s)
+        if stream_rate is not None:
+            self.stream_rate = float(stream_rate)
+        self.period_ns = self._period_ns()
 
     def _on_metadata(self, msg) -> None:
         from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs

@@ -47,7 +47,7 @@ from std_msgs.msg import String
 from maglev_msgs.msg import ModalEstimate, ModalMode, SensorBlock
 from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_METADATA, TOPIC_VEHICLE_POSITION, parse_metadata
 from maglev_ros.modal.tracking import OnlineModalConfig, OnlineModalID
-from maglev_ros.nodes._common import BlockGate, block_from_msg, run_node, stamp_to_msg
+from maglev_ros.nodes._common import BlockGate, background_thread, block_from_msg, run_node, stamp_to_msg
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 from maglev_ros.nodes._lifecycle import RECORDING_END, NodeLifecycle
 from maglev_ros.nodes._params import Param, declare
@@ -273,6 +273,10 @@ class ModalIdNode(Node):
         return self.n_jobs > 0 or self.collector.waiting
 
     def _work(self) -> None:
+        if self.skip_when_busy:
+            # windows left out when it is busy: its SSI yields to the stream work of the graph's
+            # nodes (fewer updates on a machine short of cores, the streams still taken in time)
+            background_thread()
         while True:
             with self.wake:
                 while not self.jobs:

@@ -55,7 +55,7 @@ from std_msgs.msg import String
 
 from maglev_msgs.msg import ModalEstimate, SensorBlock, TwinParameters
 from maglev_ros.contract import TOPIC_GUIDEWAY_ACCEL, TOPIC_GUIDEWAY_DISP, parse_metadata
-from maglev_ros.nodes._common import BlockGate, block_from_msg, run_node
+from maglev_ros.nodes._common import BlockGate, background_thread, block_from_msg, run_node
 from maglev_ros.nodes._diagnostics import NodeDiagnostics
 from maglev_ros.nodes._lifecycle import RECORDING_END, NodeLifecycle
 from maglev_ros.nodes._params import Param, declare
@@ -253,6 +253,7 @@ class UpdaterNode(Node):
         fit takes seconds: run in the ``maglev/modes`` callback it held back every stream of the
         node); only accepting and storing a result takes the lock. An estimate that arrives while
         a fit runs waits; a newer one replaces it (the newest modes are the ones to fit)."""
+        background_thread()
         from maglev_ros.errors import UserError
         while job is not None:
             try:
@@ -338,6 +339,7 @@ class UpdaterNode(Node):
 
         def work():
             from maglev_ros.errors import UserError
+            background_thread()                        # the magnet layer's fit: the streams come first
             try:                                       # the long part runs WITHOUT the lock
                 result = self.core.compute_magnet_update(job, residual_nrmse=e)
             except UserError as exc:
@@ -420,6 +422,7 @@ class UpdaterNode(Node):
         return self.n_end_jobs > 0 or self.collector.waiting
 
     def _end_work(self) -> None:
+        background_thread()          # the recording-end update: the streams come first
         while True:
             ambient, passes = self.end_jobs.get()
             try:

@@ -42,7 +42,7 @@ GRAPHS: dict[str, list[NodeSpec]] = {
         # the twin measures the irregularity under the vehicle itself (irregularity_source
         # "vehicle"; see maglev_ros.twin.online) and judges vehicle channels only where it has
         NodeSpec("twin", "maglev_ros.nodes.twin", params={"irregularity_source": "vehicle", "dt_max_s": 5e-4},
-                 runs_until_stopped=True, takes_stream_rate=True),
+                 runs_until_stopped=True),
     ],
 }
 

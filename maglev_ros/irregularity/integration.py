@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy import fft as sfft
@@ -106,6 +107,23 @@ def _taper(n: int, fs_hz: float, highpass_hz: float) -> np.ndarray:
     return w
 
 
+FD_GAIN_CACHE_MAX_N = 2 ** 19     # a live window's FFT length; a whole recording's is not kept
+
+
+@lru_cache(maxsize=16)
+def _fd_gain(nfft: int, fs_hz: float, highpass_hz: float, order: int, integrate_twice: bool) -> np.ndarray:
+    """The frequency response of :func:`_apply_fd` (read-only, cached: a stream's windows repeat a
+    few FFT lengths, and the live profiles recompute them every second)."""
+    f = sfft.rfftfreq(nfft, 1.0 / fs_hz)
+    h = highpass_gain(f, highpass_hz, order)
+    if integrate_twice:
+        w2 = (2.0 * np.pi * f) ** 2
+        w2[0] = np.inf
+        h = -h / w2
+    h.flags.writeable = False
+    return h
+
+
 def _apply_fd(x: np.ndarray, fs_hz: float, highpass_hz: float, order: int,
               integrate_twice: bool, mean: float | None = None) -> np.ndarray:
     n = x.size
@@ -113,12 +131,8 @@ def _apply_fd(x: np.ndarray, fs_hz: float, highpass_hz: float, order: int,
     buf = np.zeros(nfft)
     buf[npad:npad + n] = (x - (np.mean(x) if mean is None else mean)) * _taper(n, fs_hz, highpass_hz)
     spec = sfft.rfft(buf)
-    f = sfft.rfftfreq(nfft, 1.0 / fs_hz)
-    h = highpass_gain(f, highpass_hz, order)
-    if integrate_twice:
-        w2 = (2.0 * np.pi * f) ** 2
-        w2[0] = np.inf
-        h = -h / w2
+    key = (nfft, float(fs_hz), float(highpass_hz), int(order), bool(integrate_twice))
+    h = _fd_gain(*key) if nfft <= FD_GAIN_CACHE_MAX_N else _fd_gain.__wrapped__(*key)
     out = sfft.irfft(spec * h, nfft)
     return out[npad:npad + n]
 

@@ -12,9 +12,7 @@ the profile itself from the vehicle streams, point-magnet band), topic (the /mag
 message) or random (PSD sample; vehicle residuals are then never published). The vehicle is
 stepped with a bounded lag (``max_lag_s``) so that the measured profile lies under every magnet;
 a vehicle residual block is published only when valid (every magnet over the measured profile,
-settled); its prediction is always published. The measured profile is refreshed every
-max(1, ``stream_rate``) s of stream (at most ``max_lag_s`` / 2): about once per wall second at the
-replay's rate, which the launcher passes; predictions are the same from run to run at one rate.
+settled); its prediction is always published.
 
 Graph run protocol (:mod:`maglev_ros.nodes._lifecycle`): the node says ``warming`` until every
 jitted kernel of the twin is compiled or loaded from numba's cache (:mod:`maglev_ros.twin.warm`, on
@@ -33,8 +31,8 @@ at once on a live stream; during a replay's recording, by the next recording's t
 time depends on the wall clock, the recording's predictions must not).
 
 Parameters (``PARAMS``, with descriptions and ranges; read at construction except
-``idle_flush_s`` and ``stream_rate``): ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0),
-``idle_flush_s`` (2.0, live), ``stream_rate`` (1.0, live from the next recording), ``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
+``idle_flush_s``): ``irregularity_source`` (vehicle), ``max_lag_s`` (6.0), ``idle_flush_s`` (2.0,
+live), ``irregularity_psd`` (default maglev_001), ``irregularity_band_m`` ([1.0, 20.0]),
 ``seed`` (0), ``method`` (newmark | separated), ``fs_hz`` (0 = fastest measured rate),
 ``dt_max_s`` (2.5e-4), ``resync_m`` (0.05).
 """
@@ -79,12 +77,6 @@ PARAMS = (
           choices=IRREGULARITY_SOURCES),
     Param("max_lag_s", 6.0, "how far the twin may lag the stream while the rail ahead is measured [s]",
           range=(0.0, 3600.0)),
-    # a refresh of the measured profile re-processes the profiler's tail (~20 ms): at 10x, one per
-    # stream second would be ten per wall second; the twin's lag stays within max_lag_s / 2
-    Param("stream_rate", 1.0, "bag seconds per wall second of the streams (the launcher sets the replay's "
-                              "rate; 1 for live data): the measured profile is refreshed every "
-                              "max(1, stream_rate) s of stream, at most max_lag_s / 2 (from the next recording)",
-          range=(0.1, 100.0), apply=lambda node, v: node.opts.__setitem__("stream_rate", v)),
     Param("idle_flush_s", 2.0, "no input for this long (wall time) ends the stream: the queued "
                                "remainder is stepped and published [s]", range=(0.0, 1e9),
           apply=lambda node, v: setattr(node, "idle_flush_s", v)),
@@ -105,9 +97,6 @@ def _to_msg(block) -> SensorBlock:
     return m
 
 
-PROFILE_PERIOD_S = 1.0     # stream seconds between refreshes of the measured profile at real time
-
-
 class TwinNode(Node):
     def __init__(self) -> None:
         super().__init__("twin")
@@ -123,7 +112,6 @@ class TwinNode(Node):
             "resync_m": v["resync_m"],
             "irregularity_source": v["irregularity_source"],
             "max_lag_s": v["max_lag_s"],
-            "stream_rate": v["stream_rate"],
         }
         self.idle_flush_s = v["idle_flush_s"]
         self.last_input = time.monotonic()
@@ -222,14 +210,6 @@ class TwinNode(Node):
         self._finish()
 
     # ------------------------------------------------------------------ inputs
-    def _profile_period_s(self) -> float:
-        """About one refresh per wall second at the stream's rate, the twin's lag kept within
-        half of ``max_lag_s`` (beyond max_lag_s it would step without a profile)."""
-        period = PROFILE_PERIOD_S * max(1.0, float(self.opts["stream_rate"]))
-        if self.opts["max_lag_s"] > 0:
-            period = min(period, max(PROFILE_PERIOD_S, 0.5 * float(self.opts["max_lag_s"])))
-        return period
-
     def _on_metadata(self, msg) -> None:
         from maglev_ros.errors import UserError
         from maglev_ros.twin.online import OnlineTwin
@@ -242,7 +222,7 @@ class TwinNode(Node):
                                    method=self.opts["method"], fs_hz=self.opts["fs_hz"],
                                    dt_max_s=self.opts["dt_max_s"], resync_m=self.opts["resync_m"],
                                    irregularity_source=self.opts["irregularity_source"],
-                                   max_lag_s=self.opts["max_lag_s"], profile_period_s=self._profile_period_s())
+                                   max_lag_s=self.opts["max_lag_s"])
         except (UserError, ValueError) as exc:
             self.get_logger().error(f"/testline/metadata: cannot build the twin: {exc}")
             self.core = None

@@ -34,7 +34,8 @@ Irregularity (``irregularity_source``; the vehicle channels are only judged agai
   streams it already receives: an :class:`~maglev_ros.irregularity.profile.IncrementalProfiler`
   (inertial reference method) fed /testline/vehicle/{accel,gap,position}, configured for a
   point-magnet twin like :mod:`maglev_ros.irregularity.twin_input` (``magnet_length_m`` 0,
-  ``spacing_m`` 0.02 m, ``highpass_hz`` 0.8 Hz, band speed 80 % of the metadata's nominal speed;
+  ``spacing_m`` 0.02 m, ``highpass_hz`` 0.8 Hz, band speed 80 % of the metadata's nominal speed,
+  the last magnet span + 20 longest wavelengths of profile kept (:func:`profile_length_m`);
   override with ``profiler_options``). Why not the irregularity node's /maglev/irregularity: that
   is a geometry product (3 m magnet length, 0.25 m grid) whose band leaves out the short waves
   (stator-pack joints, < 3 m) that dominate the magnet accelerations, so a twin driven by it
@@ -110,6 +111,21 @@ _PROFILER_KEYS = {TOPIC_VEHICLE_ACCEL: "accel", TOPIC_VEHICLE_GAP: "gap"}
 def _as_irr(obj):
     from maglev_ros.twin.coupling import as_irregularity
     return as_irregularity(obj)
+
+
+# the measured profile the twin keeps: from its rearmost magnet back this many of the band's longest
+# wavelengths (the band filter's start-up transient at the kept profile's old end has died out well
+# before the magnets: predictions equal those with a 2 km profile to 1e-7), so a refresh costs the
+# same at the start of a run as after kilometres
+PROFILE_CONTEXT_WAVELENGTHS = 20.0
+
+
+def profile_length_m(profiler, magnet_offsets_m) -> float:
+    """Length of measured profile the twin needs: the vehicle's magnet span plus
+    :data:`PROFILE_CONTEXT_WAVELENGTHS` of the profiler's longest wavelength."""
+    lam_max = profiler.cfg.longest_wavelength_m(profiler._v_band())
+    span = float(np.ptp(magnet_offsets_m)) if np.size(magnet_offsets_m) else 0.0
+    return span + PROFILE_CONTEXT_WAVELENGTHS * lam_max
 
 
 @dataclass(frozen=True)
@@ -302,12 +318,15 @@ class OnlineTwin:
         self._offsets = np.asarray(md.magnet_offsets_m if self.kind == "pass" else (), float)
         if self.irregularity_source == "vehicle" and self.kind == "pass" and self._offsets.size:
             from maglev_ros.irregularity.profile import IncrementalProfiler, magnet_channel_pairs
-            opts = {"highpass_hz": 0.8, "spacing_m": 0.02, "magnet_length_m": 0.0, "max_profile_m": 2000.0,
+            opts = {"highpass_hz": 0.8, "spacing_m": 0.02, "magnet_length_m": 0.0,
                     "band_speed_mps": 0.8 * md.nominal_speed_mps if md.nominal_speed_mps else None}
             opts.update(self._profiler_options)
             try:
-                self._profiler = IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m or 0.010,
-                                                     channel_pairs=magnet_channel_pairs(md), **opts)
+                make = lambda **o: IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m or 0.010,  # noqa: E731
+                                                       channel_pairs=magnet_channel_pairs(md), **o)
+                if "max_profile_m" not in opts:
+                    opts["max_profile_m"] = profile_length_m(make(**opts), self._offsets)
+                self._profiler = make(**opts)
             except TypeError as exc:
                 raise UserError(f"twin profiler_options: {exc}") from None
 

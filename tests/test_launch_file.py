@@ -189,3 +189,24 @@ def test_a_bad_namespace_is_one_line(bad):
 def test_a_namespace_is_made_fully_qualified():
     assert check_namespace("line1") == "/line1" and check_namespace("/a/b/") == "/a/b"
     assert check_namespace("") == check_namespace("/") == ""
+
+
+def test_the_replays_rate_reaches_the_nodes_that_pace_their_outputs_in_wall_time():
+    """The irregularity node gets the replay's rate as ``stream_rate`` (live profiles about once per
+    wall second); unpaced (``fast``) or without a bag it keeps 1; an explicit override wins."""
+    from maglev_ros.launch_graph import launch_overrides, node_launches
+
+    def stream_rate(**kw):
+        bag = kw.pop("bag", str(BAG))
+        extra = kw.pop("irregularity", None)
+        ov = launch_overrides(**kw)
+        if extra is not None:
+            ov["irregularity"] = extra
+        nl = {n.name: n for n in node_launches("monitor", bag=bag, overrides=ov)}
+        return nl["irregularity"].params.get("stream_rate", 1.0), nl["twin"].params.get("stream_rate")
+
+    assert stream_rate(rate=10.0) == (10.0, None)          # the twin's predictions do not depend on it
+    assert stream_rate(rate=0.5) == (0.5, None)
+    assert stream_rate(rate=10.0, fast=True) == (1.0, None)
+    assert stream_rate(rate=10.0, irregularity={"stream_rate": 1.0}) == (1.0, None)
+    assert stream_rate(rate=10.0, bag=None)[0] == 1.0

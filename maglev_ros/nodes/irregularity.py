@@ -5,7 +5,8 @@ Subscribes /testline/metadata (latched), /testline/vehicle/{accel,gap,position};
 /maglev/irregularity (maglev_msgs/IrregularityProfile, latched, so the twin gets the newest
 profile whenever it joins) every ``publish_period_s`` x max(1, ``stream_rate``) of STREAM time when
 it has grown (never an all-NaN one): about every ``publish_period_s`` of wall time whatever the
-replay's rate, which the launcher passes as ``stream_rate``. The blocks are fed in (stamp, topic) order whatever order DDS delivers the topics in
+replay's rate, which the launcher passes as ``stream_rate`` (a ``set_rate`` during the run does not
+change it). The blocks are fed in (stamp, topic) order whatever order DDS delivers the topics in
 (:mod:`maglev_ros.stream_order`), and each live profile is that of a copy of the profiler taken
 when the ordered stream reaches its mark (every block stamped before it, none after), computed on
 a worker thread (its ``result()`` re-processes the buffered tail: a few tenths of a second, which
@@ -25,8 +26,8 @@ on the same worker, after any live one (the node says ``busy`` until it is publi
 Parameters: highpass_hz (0: chosen from the stream by the rule of ``maglev-ros irregularity``),
 spacing_m (0.25), band_speed_mps (0: growing profile at 80% of the metadata's nominal speed, else
 15 km/h; the recording's profile at the verb's default), max_profile_m (0: unbounded),
-publish_period_s (1.0 s), stream_rate (1.0), max_recording_s (1800); each with its description and range in
-``PARAMS``.
+publish_period_s (1.0 s), stream_rate (1.0), max_recording_s (1800); each with its description and
+range in ``PARAMS``.
 """
 from __future__ import annotations
 

@@ -2,9 +2,9 @@
 
     python bench/keepup_probe.py OUT.json [--namespace NS] [--reliable] [--max-s S]
 
-Subscribes (the graph's known outputs from its start, other topics as discovered every 0.5 s) every SensorBlock, ModalEstimate, IrregularityProfile,
-MismatchReport, TwinParameters and std_msgs/String topic under ``NS/testline/`` and ``NS/maglev/``,
-and ``/diagnostics``. For each message it keeps the DDS publish time (``source_timestamp``: when
+Subscribes (the graph's known outputs from its start, other topics as discovered every 0.5 s)
+every SensorBlock, ModalEstimate, IrregularityProfile, MismatchReport, TwinParameters and
+std_msgs/String topic under ``NS/testline/`` and ``NS/maglev/``, and ``/diagnostics``. For each message it keeps the DDS publish time (``source_timestamp``: when
 the writer sent it), the probe's receive time, the writer's sequence number and the header stamp
 (SensorBlocks also their last sample's time); /diagnostics keeps each node's ``blocks_accepted``.
 Nothing is deserialised that a header or counter does not need (raw CDR for the large messages).

@@ -38,15 +38,15 @@ from maglev_ros.errors import UserError
 from maglev_ros.launch_graph import NodeSpec, node_launches, ros_args
 
 STOP_TIMEOUT_S = 5.0
+FINISH_TIMEOUT_S = 60.0
+# exit codes of a node stopped by SIGINT: 0 from run_node; 130 / -SIGINT from Python when the
+# signal came before the node installed its handler (still importing)
+_STOPPED_CLEANLY = (0, 130, -signal.SIGINT)
 # each node in a process group of its own (a terminal's Ctrl-C reaches the launcher only, which stops
 # them in order), in the launcher's session: Linux's autogroup scheduling shares the cores per
 # session, and the nodes' background threads (nodes._common.background_thread) only yield to the
 # other nodes' stream work when they share one
 _OWN_GROUP = {"process_group": 0} if sys.version_info >= (3, 11) else {"preexec_fn": os.setpgrp}
-FINISH_TIMEOUT_S = 60.0
-# exit codes of a node stopped by SIGINT: 0 from run_node; 130 / -SIGINT from Python when the
-# signal came before the node installed its handler (still importing)
-_STOPPED_CLEANLY = (0, 130, -signal.SIGINT)
 
 
 class GraphFailure(UserError):

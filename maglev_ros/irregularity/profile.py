@@ -986,6 +986,10 @@ class IncrementalProfiler:
             for st in s.values():
                 st.drop_before(keep_from - 1.0)   # 1 s spare for the slower position stream
 
+    def longest_wavelength_m(self) -> float:
+        """The longest wavelength of the growing profile's band (fixed up front)."""
+        return self.cfg.longest_wavelength_m(self._v_band())
+
     def _v_band(self, cfg=None) -> float:
         c = self.cfg if cfg is None else cfg
         if c.max_wavelength_m is not None:

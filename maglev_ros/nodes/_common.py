@@ -6,6 +6,7 @@ import copy
 import importlib
 import os
 import sys
+import threading
 from collections import Counter
 
 import rclpy
@@ -62,7 +63,6 @@ def background_thread() -> None:
     per thread; threads it starts inherit it). Work whose result is not paced by the stream runs
     so: under a fast replay on few cores it waits instead of holding back the nodes' stream work.
     Elsewhere, or where the system refuses, the thread keeps its priority."""
-    import threading
     try:
         tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + BACKGROUND_NICE))
@@ -184,6 +184,8 @@ class BlockGate:
         self.converted: dict = {}                    # topic -> unit conversions made (logged once)
         self.scans: dict = {}                        # topic -> health.TopicScan of the blocks taken
         self._scan_pending: dict = {}                # topic -> blocks not yet scanned (< SCAN_BATCH_S)
+        # the executor feeds the scans, the diagnostics thread flushes and reads them
+        self._scan_lock = threading.Lock()
         self._said: set = set()                      # (topic, channel, kind) already logged
         diagnostics.add_check(self.check)
         diagnostics.add_check(self.health_check)
@@ -191,8 +193,9 @@ class BlockGate:
     def new_stream(self) -> None:
         """Call on new metadata: the next block of each topic sets its layout again."""
         self.stream.new_stream()
-        self.scans.clear()
-        self._scan_pending.clear()
+        with self._scan_lock:
+            self.scans.clear()
+            self._scan_pending.clear()
 
     @property
     def seen(self) -> int:
@@ -234,29 +237,40 @@ class BlockGate:
 
     def _scan(self, topic: str, block) -> None:
         """The verbs' flat / clipped / implausible scan (maglev_ros.health.TopicScan) of the contract's
-        sensor streams (a twin's residual is no sensor), fed about a second of blocks at a time: per
-        0.1 s block its numpy calls on small arrays cost each node ~0.25 ms a block."""
+        sensor streams (a twin's residual is no sensor), fed SCAN_BATCH_S of blocks at a time, and
+        whatever is pending when the diagnostics read it: per 0.1 s block its numpy calls on small
+        arrays cost each node ~0.25 ms a block."""
         import numpy as np
 
         from maglev_ros.contract import DATA_TOPICS
         from maglev_ros.health import TopicScan
         if topic not in DATA_TOPICS or not np.isfinite(block.data).all():
             return                     # NaN/inf blocks are the contract check's, as TopicScan.add has it
-        scan = self.scans.get(topic)
-        if scan is None:
-            scan = self.scans[topic] = TopicScan(topic, block.channels, block.sample_rate_hz)
-            self._scan_pending[topic] = []
+        with self._scan_lock:
+            if topic not in self.scans:
+                self.scans[topic] = TopicScan(topic, block.channels, block.sample_rate_hz)
+                self._scan_pending[topic] = []
+            pending = self._scan_pending[topic]
+            pending.append(block.data)
+            if sum(len(d) for d in pending) >= SCAN_BATCH_S * max(block.sample_rate_hz, 1.0):
+                self._flush_scan(topic)
+
+    def _flush_scan(self, topic: str) -> None:
+        """Feed ``topic``'s pending blocks to its scan (under ``_scan_lock``)."""
+        import numpy as np
         pending = self._scan_pending[topic]
-        pending.append(block.data)
-        if sum(len(d) for d in pending) >= SCAN_BATCH_S * max(block.sample_rate_hz, 1.0):
-            scan.add(np.concatenate(pending) if len(pending) > 1 else pending[0])
+        if pending:
+            self.scans[topic].add(np.concatenate(pending) if len(pending) > 1 else pending[0])
             pending.clear()
 
     def health_check(self):
         """Channels the sensor-health scan calls flat, clipped or implausible so far: WARN naming
         them (a node cannot leave a channel out of a model already built; the operator is told)."""
         from maglev_ros.nodes._diagnostics import OK, WARN, Check
-        found = [i for scan in self.scans.values() for i in scan.issues()]
+        with self._scan_lock:
+            for topic in self.scans:
+                self._flush_scan(topic)
+            found = [i for scan in self.scans.values() for i in scan.issues()]
         for i in found:
             if (i.topic, i.channel, i.kind) not in self._said:
                 self._said.add((i.topic, i.channel, i.kind))

@@ -123,9 +123,8 @@ PROFILE_CONTEXT_WAVELENGTHS = 20.0
 def profile_length_m(profiler, magnet_offsets_m) -> float:
     """Length of measured profile the twin needs: the vehicle's magnet span plus
     :data:`PROFILE_CONTEXT_WAVELENGTHS` of the profiler's longest wavelength."""
-    lam_max = profiler.cfg.longest_wavelength_m(profiler._v_band())
     span = float(np.ptp(magnet_offsets_m)) if np.size(magnet_offsets_m) else 0.0
-    return span + PROFILE_CONTEXT_WAVELENGTHS * lam_max
+    return span + PROFILE_CONTEXT_WAVELENGTHS * profiler.longest_wavelength_m()
 
 
 @dataclass(frozen=True)
@@ -322,9 +321,10 @@ class OnlineTwin:
                     "band_speed_mps": 0.8 * md.nominal_speed_mps if md.nominal_speed_mps else None}
             opts.update(self._profiler_options)
             try:
-                make = lambda **o: IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m or 0.010,  # noqa: E731
-                                                       channel_pairs=magnet_channel_pairs(md), **o)
-                if "max_profile_m" not in opts:
+                def make(**o):
+                    return IncrementalProfiler(md.magnet_offsets_m, md.nominal_gap_m or 0.010,
+                                               channel_pairs=magnet_channel_pairs(md), **o)
+                if "max_profile_m" not in opts:    # the band (so the length) is known once configured
                     opts["max_profile_m"] = profile_length_m(make(**opts), self._offsets)
                 self._profiler = make(**opts)
             except TypeError as exc:

@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .model import ModelSpec, guideway_modal
+from .model import CAL_PARAMS, ModelSpec, guideway_modal
 
 CATEGORIES = ("boundary_condition", "control", "magnetic_force", "excitation", "guideway_structure",
               "vehicle_structure", "suspension", "instrumentation", "other")
@@ -118,11 +118,34 @@ def girder_hypotheses(spec: ModelSpec, f1_hz: np.ndarray) -> list[Hypothesis]:
 ZONES_PER_SPAN = 4   # quarters: a sensor at 1/8, 1/4, 1/2, 3/4 or 7/8 of a span sees each one's curvature
 
 
-def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray) -> list[Hypothesis]:
+def tie_first_mode(spec: ModelSpec, span_index: int, f1_hz: float, iterations: int = 3) -> ModelSpec:
+    """``spec`` with the line's calibrated E (``cal``) scaled so that span ``span_index``'s first bending
+    mode rings at ``f1_hz``. A damaged zone lowers the measured span's first mode, which the calibrated
+    E had matched: with the zone in, E goes back to what the sound girder has, the value the unmeasured
+    spans need. f1 ~ sqrt(E) but for the bearings' share, so a few fixed-point steps."""
+    k = CAL_PARAMS.index("E")
+    for _ in range(iterations):
+        m = guideway_modal(spec)
+        f = float(m.freq_hz[m.span_index == span_index].min())
+        step = 2.0 * math.log(f1_hz / f)
+        if abs(step) < 1e-5:
+            break
+        cal = list(spec.cal) + [0.0] * (len(CAL_PARAMS) - len(spec.cal))
+        cal[k] += step
+        spec = spec.with_(cal=tuple(cal))
+    return spec
+
+
+def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray,
+                           measured_f1_hz: dict | None = None) -> list[Hypothesis]:
     """A damaged zone (one quarter of the span, EI lowered there) on each span in ``span_indices``
     (those with guideway sensors: the mode shapes they sample are what place a zone). A uniform
     loss lowers every mode of the span by the same ratio; a zone lowers each mode by its curvature
-    there, so it is told from a changed E by the pattern of the span's modes."""
+    there, so it is told from a changed E by the pattern of the span's modes. ``measured_f1_hz``
+    (span index -> the first mode measured on the ambient recording): the line's E is re-scaled with
+    each trial loss so that span keeps that mode (:func:`tie_first_mode`); the loss is then set by
+    the rest of the span's response, not traded against E."""
+    measured_f1_hz = measured_f1_hz or {}
     out = []
     for i in span_indices:
         s = spec.spans[i]
@@ -132,19 +155,23 @@ def girder_zone_hypotheses(spec: ModelSpec, span_indices, f1_hz: np.ndarray) -> 
 
             def apply(sp, p, i=i, x0=x0, x1=x1):
                 keep = tuple(z for z in sp.girder_zones if (z[0], z[1], z[2]) != (i, x0, x1))
-                return sp.with_(girder_zones=keep + ((i, x0, x1, 1.0 - float(p[0])),))
+                out = sp.with_(girder_zones=keep + ((i, x0, x1, 1.0 - float(p[0])),))
+                return tie_first_mode(out, i, measured_f1_hz[i]) if i in measured_f1_hz else out
 
             plaus = _loss_plausible(" of the zone", 0.9, "leaves no girder there")
 
             def desc(p, sp, i=i, s=s, x0=x0, x1=x1):
                 m = guideway_modal(sp)
                 f_new = float(m.freq_hz[m.span_index == i].min())
+                e_pa = s.props.youngs_modulus_pa * sp.cal_factor("E")
+                tied = (f" With the zone in, the line's sound girder has E = {e_pa / 1e9:.1f} GPa (so that the span's "
+                        f"first mode rings at the measured {f_new:.2f} Hz)." if i in measured_f1_hz else "")
                 return (f"A zone of girder span {s.span_id} from {s.start_m + x0:.1f} to {s.start_m + x1:.1f} m is "
                         f"about {p[0] * 100:.0f} % less stiff in bending (cracking, local prestress loss): the span "
-                        f"deflects more there and its first bending mode drops from about {f1_hz[i]:.1f} Hz to "
-                        f"{f_new:.1f} Hz, its higher modes by less.",
+                        f"deflects more there and its bending modes drop each by its curvature in the zone, "
+                        f"which changes the ratio of its first two modes.{tied}",
                         {"span": s.span_id, "stiffness_loss": float(p[0]), "zone_m": [s.start_m + x0, s.start_m + x1],
-                         "first_mode_hz": f_new})
+                         "first_mode_hz": f_new, "youngs_modulus_pa": e_pa})
             out.append(Hypothesis("girder_stiffness_loss", f"girder_stiffness_loss@{s.span_id}[{x0:.1f}-{x1:.1f} m]",
                                   ("stiffness_loss",), (-0.3,), (0.9,), (0.5,), apply,
                                   location={"position_m": [s.start_m + x0, s.start_m + x1], "span": s.span_id},

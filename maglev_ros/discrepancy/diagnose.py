@@ -61,10 +61,9 @@ class DiagnoseConfig:
     # besides the n_top best-screened: the best of every further effect and every girder/bearing
     # hypothesis of the spans the strongest guideway mismatches name (False: the n_top only)
     fit_every_effect: bool = True
-    # damaged zones (a quarter of a measured span) besides the uniform loss of each span. Off by default
-    # until zones are judged on the ambient modes: on a foreign line the right quarter of a real zone
-    # gained 3 % held-out (below the gate) while a clean span got a false 17 % zone loss (11 % gain)
-    girder_zones: bool = False
+    # damaged zones (a quarter of a measured span) besides the uniform loss of each span: None fits them
+    # where the ambient recording's mode ratio of the span is off the twin's (:func:`.pipeline.propose.zones_to_try`)
+    girder_zones: bool | None = None
 
 
 class Diagnoser:

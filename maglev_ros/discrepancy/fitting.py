@@ -148,7 +148,7 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
             # control delay that the calibrated gains had partly absorbed: the step made the fit
             # worse than no step), so the better of "no re-fit" and "re-fit" is kept
             best = (float(r @ r), np.zeros_like(d))
-            r2 = res_of(sp.with_(cal=tuple(float(x) for x in base.theta + d)))
+            r2 = res_of(sp.with_(cal=tuple(float(x) for x in np.asarray(sp.cal) + d)))
             if r2 is not None and float(r2 @ r2) < best[0]:
                 best = (float(r2 @ r2), d)
         cache[p] = best
@@ -176,7 +176,7 @@ def fit_1d(base: BaseFit, hyp: Hypothesis, rds: list[RecData], maxiter: int = 9,
         p, d, rs, n = _joint_refine(base, hyp, rds, p, d, rs, lo, hi, profile=prof, rows=rows)
         n_sims += n
     sp = hyp.apply(base.spec, np.array([p]))
-    sp = sp.with_(cal=tuple(float(x) for x in base.theta + d))
+    sp = sp.with_(cal=tuple(float(x) for x in np.asarray(sp.cal) + d))
     profile = tuple(sorted(prof + [(float(p), float(rs))])) if prof else ()
     if rows is not None:
         r = safe_residual(sp, rds)

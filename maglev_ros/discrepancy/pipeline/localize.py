@@ -75,6 +75,6 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     # a finding for the discovery, not a reason to fit more catalogue hypotheses)
     detuned = detuned_spans(span_mode_shifts(cal.data.passes, spec))
     # the ratio of the span's first two modes on the ambient recording: E and density cancel in it
-    # (reported with its own words; not a reason to fit more catalogue hypotheses yet)
+    # (reported with its own words; where flagged, the propose stage fits damaged zones of that span)
     pattern = mode_pattern(cal.damping, spec, ambient)
     return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map, pattern)

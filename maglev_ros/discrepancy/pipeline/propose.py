@@ -19,6 +19,7 @@ from maglev_ros.progress import NULL, Progress
 from .. import catalogue as cat
 from ..evaluate import RecData, ambient_shape
 from ..fitting import BaseFit, screen
+from ..mode_pattern import ModePattern
 from ..model import ModelSpec, guideway_modal
 from ..recording import GROUP_UNIT, Recording
 from .calibrate import Calibration
@@ -53,7 +54,9 @@ class _ScreenOne:
 def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL,
             executor: Executor = SERIAL) -> Proposal:
     base, rd_train = cal.base, cal.data.rd_train
-    hyps = catalogue_hypotheses(base, rd_train, zones=config.girder_zones)
+    hyps = catalogue_hypotheses(base, rd_train, zones=zones_to_try(config.girder_zones, loc.mode_pattern,
+                                                                  cal.damping.extra_modes),
+                                measured_f1_hz=measured_first_modes(base.spec, loc.mode_pattern))
     tried = []
     physics = [h for h in hyps if h.needs_sim]
     cheap = [h for h in hyps if not h.needs_sim]
@@ -83,10 +86,36 @@ def propose(cal: Calibration, loc: Localization, config, progress: Progress = NU
     return Proposal(physics, screened, phys, cheap, tried, span_of, flagged, unmeasured)
 
 
-def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False) -> list[cat.Hypothesis]:
+def zones_to_try(setting: bool | None, pattern: ModePattern | None, extra_modes=()) -> bool:
+    """Damaged zones are fitted when asked (``setting``), or by default (None) when the measured span's
+    mode ratio is off the twin's beyond its standard error: a zone is told from a changed E only by
+    how it changes one mode against the other, so without that evidence a zone fit only trades the
+    twin's model error along the span (a clean span got a false 17 % zone loss). Not when the ambient
+    recording shows a vertical mode of the span that the twin does not have (``extra_modes``,
+    :class:`..damping.ExtraMode`): a change of stiffness moves a span's modes but adds none, an attached
+    mass-spring does (the discovery models it; a midspan attachment raised the ratio 9 % and was once
+    fitted as a zone)."""
+    if setting is not None:
+        return bool(setting)
+    if any(m.in_the_data and m.vertical for m in extra_modes):
+        return False
+    return pattern is not None and pattern.flagged
+
+
+def measured_first_modes(spec: ModelSpec, pattern: ModePattern | None) -> dict:
+    """Span index -> its first bending mode measured on the ambient recording (what a zone's E tie keeps)."""
+    ids = [s.span_id for s in spec.spans]
+    if pattern is None or pattern.span_id not in ids:
+        return {}
+    return {ids.index(pattern.span_id): float(pattern.measured_hz[0])}
+
+
+def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False,
+                         measured_f1_hz: dict | None = None) -> list[cat.Hypothesis]:
     """Every catalogue hypothesis the recordings can test (structure of the measured spans, with damaged
     zones when ``zones``, the levitation loop when magnets are measured, the car body when it is,
-    ambient vibration when the guideway is, a fault of each channel)."""
+    ambient vibration when the guideway is, a fault of each channel). ``measured_f1_hz``: see
+    :func:`..catalogue.girder_zone_hypotheses`."""
     spec = base.spec
     rec = rds[0].rec
     modal = guideway_modal(spec)
@@ -94,7 +123,7 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False)
     veh = rec.names("vehicle_accel") + rec.names("gap")
     body = rec.names("body_accel")
     gw = rec.names("guideway_accel") + rec.names("guideway_disp")
-    hyps, _ = structural_hypotheses(spec, rec, f1, zones)
+    hyps, _ = structural_hypotheses(spec, rec, f1, zones, measured_f1_hz)
     if veh:
         fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
         hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
@@ -126,7 +155,7 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False)
 
 
 def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray,
-                          zones: bool = False) -> tuple[list, list[str]]:
+                          zones: bool = False, measured_f1_hz: dict | None = None) -> tuple[list, list[str]]:
     """(girder and bearing hypotheses, ids of the spans left untested) for a recording: a span's
     structure is tested where guideway sensors measure that span. The vehicle channels alone cannot
     tell a span's stiffness from the rail they themselves reconstruct (the loaded -> unloaded step
@@ -137,7 +166,8 @@ def structural_hypotheses(spec: ModelSpec, rec: Recording, f1_hz: np.ndarray,
     hyps = [h for h in cat.girder_hypotheses(spec, f1_hz) + cat.bearing_hypotheses(spec)
             if h.location.get("span") in seen]
     if zones:
-        hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz)
+        hyps += cat.girder_zone_hypotheses(spec, [i for i, s in enumerate(spec.spans) if s.span_id in seen], f1_hz,
+                                           measured_f1_hz)
     return hyps, [s.span_id for s in spec.spans if s.span_id not in seen]
 
 

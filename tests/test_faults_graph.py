@@ -51,7 +51,8 @@ CASES = {
                          params={"publish_period_s": 1e6}, inputs=(VA, VG, POS), source="bag",
                          final_only=True),
     "modal_id": dict(module="maglev_ros.nodes.modal_id", cls="ModalIdNode",
-                     params={"window_s": 1.5, "update_s": 0.5}, inputs=(GA,), source="bag"),
+                     # every window identified (skipping follows the machine's load), and waited for
+                     params={"window_s": 1.5, "update_s": 0.5, "skip_when_busy": False}, inputs=(GA,), source="bag"),
     "updater": dict(module="maglev_ros.nodes.updater", cls="UpdaterNode",
                     params={"magnet_layer": False}, inputs=(VA, VG, POS, RES_VA), source="bag"),
     "discrepancy": dict(module="maglev_ros.nodes.discrepancy", cls="DiscrepancyNode",
@@ -218,6 +219,8 @@ def _run_once(name: str, faulty: bool) -> dict:
         pubs[topic].publish(msg)
         spin_until(lambda: node.gate.seen >= k, f"block {k} on {topic}")
     _end_of_stream(name, node)
+    if name == "modal_id":
+        spin_until(lambda: not node.busy(), "the modal worker to identify every window", 300.0)
     n_good = sum(1 for *_, kind in feed if kind is None)
     spin_until(lambda: diag.get("values", {}).get("blocks_accepted") == str(n_good)
                and diag["values"]["blocks_dropped"] == str(len(feed) - n_good), "/diagnostics with the counts")

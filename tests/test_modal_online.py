@@ -89,7 +89,7 @@ def test_modal_id_node_publishes_tracked_modes_from_a_replay(tmp_path, model):
                           Block(t0 + int(round(i / FS * 1e9)), "guideway", FS, chans,
                                 ("m/s^2",) * len(chans), y[i:i + nb]))
     got = replay_through_node(ros_env(20), "maglev_ros.nodes.modal_id",
-                              ["-p", "window_s:=20.0", "-p", "fmax_hz:=120.0",
+                              ["-p", "window_s:=20.0", "-p", "fmax_hz:=120.0", "-p", "skip_when_busy:=false",
                                *[a for k, v in FIXED.items() for a in ("-p", f"{k}:={v}")]], bag,
                               ["maglev_msgs/msg/ModalEstimate:/maglev/modes"], tmp_path / "modes.json",
                               rate=10, wait_subscribers=2, idle_s=5.0)

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
+from maglev_ros.irregularity.integration import DEFAULT_FILTER_ORDER
+
 from .features import (S_MIN_HZ, FrameGrid, band_powers, frame_grid, frame_means, nrmse_amplitude, rail_transmissibility,
                        usable_bands, without_long_waves)
 from .model import ModelSpec, guideway_modal, predict, reference_value
@@ -127,13 +129,25 @@ def fit_noise_floor(p_frames: np.ndarray, grid: FrameGrid, usable: np.ndarray, e
     return width * np.exp(icpt + slope * np.log(fc))
 
 
-def rail_corner_hz(rec: Recording) -> float | None:
-    """Time corner below which the twin's rail of this pass holds no waves (its reconstruction's
-    high-pass), None when the twin runs without a reconstructed rail."""
+def rail_band_filters(rec: Recording) -> tuple[tuple[float, int], ...] | None:
+    """The filters (time corner [Hz], Butterworth order) through which the twin's rail of this pass
+    holds the rail's long waves: the reconstruction's time high-pass and its spatial band edge seen
+    at the pass's speed (both zero-phase, :mod:`maglev_ros.irregularity.profile`). None when the
+    twin runs without a reconstructed rail."""
     if rec.irregularity is None:
         return None
-    hp = ((rec.irregularity_info or {}).get("band") or {}).get("highpass_hz")
-    return float(hp) if hp else None
+    info = rec.irregularity_info or {}
+    band = info.get("band") or {}
+    hp = band.get("highpass_hz")
+    if not hp:
+        return None
+    order = int(((band.get("filter") or {}).get("order")) or DEFAULT_FILTER_ORDER)
+    out = [(float(hp), order)]
+    wl = band.get("max_wavelength_m")
+    v = float(np.nanmean(np.abs(rec.speed_mps))) if rec.speed_mps is not None and rec.speed_mps.size else 0.0
+    if wl and v > 0:
+        out.append((v / float(wl), order))
+    return tuple(out)
 
 
 def prepare(rec: Recording, base: ModelSpec) -> RecData:
@@ -202,7 +216,7 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
         m = masks[a] & masks[g] & np.any(np.isfinite(s), axis=0)
         if m.any():
             rd.sens_pairs[key], rd.sens[key], rd.sens_masks[key] = (a, g), s, m
-            lv = frame_means(cg.time_s, without_long_waves(cg.values - refs[g], cg.sample_rate_hz, rail_corner_hz(rec)),
+            lv = frame_means(cg.time_s, without_long_waves(cg.values - refs[g], cg.sample_rate_hz, rail_band_filters(rec)),
                              cg.sample_rate_hz, grid)
             lv[~np.all(np.isfinite(pm[g]), axis=1)] = np.nan
             # scale: the gap's whole signal over those frames (frame means and dynamics), so that a
@@ -296,7 +310,7 @@ def _levels_of(rd: RecData, pred: dict) -> dict:
     out = {}
     for g in rd.level:
         ch = rd.rec.channels[g]
-        y = without_long_waves(pred[g] - reference_value(rd.rec, g), ch.sample_rate_hz, rail_corner_hz(rd.rec))
+        y = without_long_waves(pred[g] - reference_value(rd.rec, g), ch.sample_rate_hz, rail_band_filters(rd.rec))
         out[g] = frame_means(ch.time_s, y, ch.sample_rate_hz, rd.grid)
     return out
 

@@ -198,21 +198,26 @@ def rail_transmissibility(t_s: np.ndarray, accel_mps2: np.ndarray, gap_m: np.nda
     return (out, rail) if with_rail_power else out
 
 
-def without_long_waves(x: np.ndarray, fs_hz: float, corner_hz: float | None) -> np.ndarray:
-    """``x`` with its content below ``corner_hz`` removed except its mean (zero-phase 2nd-order
-    Butterworth high-pass, NaN samples kept NaN). Used on gaps before their frame means: below the
-    rail reconstruction's corner the twin's input holds no rail, so the gap's slow tracking of those
-    waves cannot be predicted; the mean (a sensor offset) can. ``corner_hz`` None: ``x`` unchanged."""
-    if corner_hz is None or not corner_hz > 0 or not 0 < corner_hz < 0.5 * fs_hz:
+def without_long_waves(x: np.ndarray, fs_hz: float, corners) -> np.ndarray:
+    """``x`` with its content below the rail reconstruction's band removed except its mean: each
+    (corner_hz, order) of ``corners`` applied as a zero-phase Butterworth high-pass (gain
+    (f/fc)^(2 order) / (1 + (f/fc)^(2 order)), the reconstruction's own filters), NaN samples kept
+    NaN. Used on gaps before their frame means: the twin's rail holds the rail's waves only through
+    those filters, so the gap's slow tracking of the waves below them cannot be predicted and the
+    measured gap is compared through the same filters; the mean (a sensor offset) can be.
+    ``corners`` None or empty: ``x`` unchanged."""
+    corners = [(float(c), int(o)) for c, o in (corners or ()) if c and 0 < c < 0.5 * fs_hz]
+    if not corners:
         return x
     from scipy import signal
     ok = np.isfinite(x)
     if ok.sum() < 16:
         return x
     idx = np.arange(x.size)
-    filled = np.interp(idx, idx[ok], x[ok])
-    sos = signal.butter(2, corner_hz, btype="high", fs=fs_hz, output="sos")
-    out = signal.sosfiltfilt(sos, filled) + float(np.mean(x[ok]))
+    out = np.interp(idx, idx[ok], x[ok])
+    for corner_hz, order in corners:
+        out = signal.sosfiltfilt(signal.butter(order, corner_hz, btype="high", fs=fs_hz, output="sos"), out)
+    out = out + float(np.mean(x[ok]))
     out[~ok] = np.nan
     return out
 

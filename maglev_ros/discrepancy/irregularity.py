@@ -135,6 +135,8 @@ def _reconstruct(rec: Recording, spec, say, *, highpass_hz, spacing_m, max_itera
     """(TwinIrregularity, info) of one pass, or None (reason logged)."""
     from maglev_ros.contract import metadata_from_dict
     from maglev_ros.irregularity.twin_input import profile_for_twin
+
+    from .model import stepper_customizer
     data = _vehicle_data(rec)
     if data is None:
         if rec.kind == "pass" and rec.position_time_s is not None:
@@ -151,7 +153,7 @@ def _reconstruct(rec: Recording, spec, say, *, highpass_hz, spacing_m, max_itera
         ti = profile_for_twin(acc, gap, pos, md, spec.effective_config(), spec.effective_spans(),
                               highpass_hz=highpass_hz, spacing_m=spacing_m, channel_pairs=pairs,
                               sensor_delay_s=tau, max_iterations=max_iterations, dt_max_s=spec.dt_max_s,
-                              **profile_kw)
+                              customize_stepper=stepper_customizer(spec), **profile_kw)
     except (UserError, ValueError, np.linalg.LinAlgError) as exc:
         say(f"{rec.source}: irregularity reconstruction failed ({exc}): the twin runs on a perfect guideway")
         return None

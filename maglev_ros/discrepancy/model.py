@@ -192,38 +192,52 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
                   start_position_m: float, start_speed_mps: float, t0_s: float,
                   irregularity=None) -> TwinStepper:
     cfg = spec.effective_config()
-    spans = spec.effective_spans()
-    st = TwinStepper(cfg, spans, sensors=dict(sensors), irregularity=irregularity, fs_out_hz=fs_out_hz,
-                     start_position_m=start_position_m, start_speed_mps=start_speed_mps,
+    st = TwinStepper(cfg, spec.effective_spans(), sensors=dict(sensors), irregularity=irregularity,
+                     fs_out_hz=fs_out_hz, start_position_m=start_position_m, start_speed_mps=start_speed_mps,
                      t0_s=t0_s, init="rest", current_limit_a=spec.current_limit_a)
-    changed = False
-    own = _own_span_fes(spec, spans, cfg.numerics.n_elements_per_span)
-    if own:
-        st.guideway.spans_fe = tuple(own.get(i, fe) for i, fe in enumerate(st.guideway.spans_fe))
-        changed = True
-    if changed:
-        st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
-        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
-    if spec.resonator is not None:
-        st.modal = attached_modal(guideway_modal(spec.with_(resonator=None)), spec.resonator,
-                                  cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
-        st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
-        changed = True
-    if spec.carbody_bend_hz is not None:
-        vm = flexible_vehicle(st.vehicle.model, spec.carbody_bend_hz, spec.carbody_zeta)
-        eq = static_equilibrium(vm)
-        lev = LevitationModel.from_design(cfg.levitation, eq.magnet_force_n)
-        st.vehicle = VehicleSystem(vm, eq, lev, closed_loop(vm, lev))
-        changed = True
-    if changed:
-        st._setup_matrices()
-        st._x = np.zeros(st._nx)
-        st._u = np.zeros(3 * st._m)
-        nq = st.modal.n_modes
-        st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
-        st._F = st.vehicle.levitation.static_force_n.copy()
+    st = stepper_customizer(spec)(st)
     st._init_static()
     return st
+
+
+def stepper_customizer(spec: ModelSpec) -> Callable[[TwinStepper], TwinStepper]:
+    """What a plain ``TwinStepper`` of the spec's config and spans lacks, installed on one before it
+    is initialised: spans with their own bearings or damaged zones, an attached resonator, car-body
+    bending, the current limit. Handed to the rail reconstruction too, so that the girder
+    deflection it removes is the one this twin adds (a damaged zone left out there put its girder's
+    vibration into the rail: the twin with a case's true zone then missed 40 % of that span's
+    first-mode response)."""
+    def customize(st: TwinStepper) -> TwinStepper:
+        cfg = spec.effective_config()
+        changed = False
+        own = _own_span_fes(spec, spec.effective_spans(), cfg.numerics.n_elements_per_span)
+        if own:
+            st.guideway.spans_fe = tuple(own.get(i, fe) for i, fe in enumerate(st.guideway.spans_fe))
+            st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+            st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+            changed = True
+        if spec.resonator is not None:
+            st.modal = attached_modal(guideway_modal(spec.with_(resonator=None)), spec.resonator,
+                                      cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
+            st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m) if st.sensor_x_m.size else np.zeros((0, st.modal.n_modes))
+            changed = True
+        if spec.carbody_bend_hz is not None:
+            vm = flexible_vehicle(st.vehicle.model, spec.carbody_bend_hz, spec.carbody_zeta)
+            eq = static_equilibrium(vm)
+            lev = LevitationModel.from_design(cfg.levitation, eq.magnet_force_n)
+            st.vehicle = VehicleSystem(vm, eq, lev, closed_loop(vm, lev))
+            changed = True
+        if spec.current_limit_a is not None:
+            st.current_limit_a = float(spec.current_limit_a)
+        if changed:
+            st._setup_matrices()
+            st._x = np.zeros(st._nx)
+            st._u = np.zeros(3 * st._m)
+            nq = st.modal.n_modes
+            st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
+            st._F = st.vehicle.levitation.static_force_n.copy()
+        return st
+    return customize
 
 
 def guideway_modal(spec: ModelSpec):

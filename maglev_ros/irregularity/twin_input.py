@@ -213,7 +213,7 @@ def _position_arrays(position):
 def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
                            sensor_delay_s: float = 0.0, method: str = "newmark",
                            dt_max_s: float | None = None, sensors: Any = None,
-                           block_s: float = 0.1):
+                           block_s: float = 0.1, customize: Any = None):
     """Drive the twin along a recording's position channel; outputs on ``time_s`` (the recorded
     accel sample times, evenly spaced).
 
@@ -223,6 +223,8 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
     recorded channels. Returns ``(PassResult, drift_m, stepper)``: the twin's outputs (its
     ``position_m`` is the reference position at the un-delayed instant), the maximal |twin
     position - measured position| and the ``TwinStepper`` (vehicle model, magnet offsets).
+    ``customize``: a callable that takes the new stepper and returns it with what its config and
+    line do not hold (a damaged span, an attachment, ...), applied before the static start.
     """
     from maglev_ros.twin.coupling import PassResult, TwinStepper
     from maglev_ros.twin.trajectory import MeasuredTrajectory, drive
@@ -238,6 +240,8 @@ def simulate_recorded_pass(config, line, position, irregularity, time_s, *,
                      start_position_m=float(traj.position_at(t_start)),
                      start_speed_mps=float(traj.speed_at(t_start)), t0_s=t_start,
                      method=method, dt_max_s=dt_max_s, init="rest")
+    if customize is not None:
+        st = customize(st)
     st._init_static()
     res = PassResult.concat(drive(st, traj, t_end + 0.5 / fs, block_s))
     drift = float(np.max(np.abs(res.position_m - traj.position_at(res.time_s)))) if res.n_samples else 0.0
@@ -310,7 +314,8 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
                      channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
                      sensor_delay_s: float = 0.0, max_iterations: int = 4, tol: float = 0.01,
                      taper_m: float = 1.0, edge_s: float | None = None, method: str = "newmark",
-                     dt_max_s: float | None = None, **profiler_kwargs) -> TwinIrregularity:
+                     dt_max_s: float | None = None, customize_stepper: Any = None,
+                     **profiler_kwargs) -> TwinIrregularity:
     """Unloaded irregularity of one pass, ready to drive the twin (see module docstring).
 
     ``accel``, ``gap``, ``position``: ChannelData-like (time_s, data, channels[, sample_rate_hz])
@@ -322,7 +327,8 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     warnings). ``highpass_hz`` None: the corner follows the pass as the irregularity verb chooses it
     (:meth:`InertialProfiler.corner_for`), with its edges unless ``edge_s`` is given. ``spacing_m``
     None: the grid follows the data (:func:`twin_spacing_m`). Extra keyword arguments go to
-    :class:`InertialProfiler`.
+    :class:`InertialProfiler`. ``customize_stepper``: passed to :func:`simulate_recorded_pass`
+    (the twin whose deflection is removed must be the twin that is then driven by the result).
     """
     offs, g0, pairs = _resolve_vehicle(metadata_or_offsets, accel, gap, nominal_gap_m, channel_pairs)
     if highpass_hz is not None and not highpass_hz > 0:
@@ -355,7 +361,8 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
     it = 0
     for it in range(1, int(max_iterations) + 1):
         res, drift, st = simulate_recorded_pass(config, line, position, (x, r), t_acc,
-                                                sensor_delay_s=tau, method=method, dt_max_s=dt_max_s)
+                                                sensor_delay_s=tau, method=method, dt_max_s=dt_max_s,
+                                                customize=customize_stepper)
         w = twin_deflection(res, st, (x, r))
         tw = res.time_s
 

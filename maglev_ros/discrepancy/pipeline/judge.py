@@ -17,6 +17,7 @@ import numpy as np
 from maglev_ros.progress import NULL, Progress
 
 from ..acceptance import AcceptanceConfig, Verdict
+from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, model_powers
 from ..fitting import HypFit
 from ..model import ModelSpec
@@ -73,7 +74,8 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
     fits = [peer_ref[id(hf)][0] if id(hf) in peer_ref else (hf, v, d) for hf, v, d in fits]
     by_peers = {id(t[0]): pf for t, pf in peer_ref.values()}
     local_ev.update({id(t[0]): (pf.heldout_before, pf.heldout_after) for t, pf in peer_ref.values()})
-    accepted = [(hf, v, d) for hf, v, d in fits if v.accepted and id(hf) not in by_peers]
+    accepted = _one_form_per_effect([(hf, v, d) for hf, v, d in fits if v.accepted and id(hf) not in by_peers],
+                                    local_ev)
     accepted.sort(key=lambda t: t[1].heldout_after)
     chosen = []
     final_spec = base.spec
@@ -118,6 +120,23 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
             local_ev[id(hf)] = (pf_n.heldout_before, pf_n.heldout_after)
         chosen.append((hf, v, d))
     return Judgement(fits, chosen, final_spec, rd_fin, by_peers, signatures, sig_of, local_ev)
+
+
+def _one_form_per_effect(accepted: list, local_ev: dict) -> list:
+    """Of the accepted forms of one levitation effect (a transport delay, a first-order lag), the one
+    that fits best on the channels it acts on: the forms differ only there, and the whole recording
+    also carries what the calibration traded for the effect (a transport delay fitted the magnets'
+    held-out items 2x better than a lag, but the guideway calibrated without it fitted worse with it,
+    so the lag won on the whole recording)."""
+    best: dict = {}
+    for t in accepted:
+        h = t[0].hyp
+        if h.category in VEHICLE_WIDE and id(t[0]) in local_ev:
+            cur = best.get(h.effect)
+            if cur is None or local_ev[id(t[0])][1] < local_ev[id(cur[0])][1]:
+                best[h.effect] = t
+    return [t for t in accepted if not (t[0].hyp.category in VEHICLE_WIDE and id(t[0]) in local_ev)
+            or best.get(t[0].hyp.effect) is t]
 
 
 SIBLING_LOG_SCALE = 0.10   # |ln| off the peers in every pass; healthy channels: min over passes <= 0.073

@@ -89,9 +89,16 @@ def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config
                     f"spread {spread:.1f} < {IDENTIFIABLE_LLR:g}); the calibrated gains absorb a delay of "
                     "that size (a recorded magnet current, which the recording contract does not carry, or a "
                     "faster pass may separate them)",)
-        why = "; ".join(reasons) if not v.accepted else (
-            f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
-            f"less than {chosen[0][0].hyp.label} for the same residual")
+        form = next((c for c in chosen if c[0].hyp.effect == hf.hyp.effect and id(c[0]) in jd.local_ev
+                     and id(hf) in jd.local_ev), None)
+        if v.accepted and form is not None:
+            why = (f"another form of {hf.hyp.effect}: on the channels they act on it fits the held-out passes "
+                   f"less well ({jd.local_ev[id(hf)][1]:.3f} vs {jd.local_ev[id(form[0])][1]:.3f} for "
+                   f"{form[0].hyp.label})")
+        else:
+            why = "; ".join(reasons) if not v.accepted else (
+                f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
+                f"less than {chosen[0][0].hyp.label} for the same residual")
         rejected.append({"effect": hf.hyp.effect, "why": f"{hf.hyp.label}: {why}"})
     for _, h in screened[cfg.n_top:]:
         if any(h is p for p in phys):

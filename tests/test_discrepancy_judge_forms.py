@@ -30,3 +30,30 @@ def test_a_single_form_and_whole_recording_hypotheses_are_kept():
     sensor = _fit("sensor_error", "sensor_error@M8G", "instrumentation")
     accepted = [(lag, None, 0.0), (sensor, None, 0.0)]
     assert _one_form_per_effect(accepted, {id(lag): (0.1, 0.05), id(sensor): (0.6, 0.04)}) == accepted
+
+
+def test_levitation_physics_on_top_of_another_effect_keeps_the_gains_it_was_fitted_with():
+    import math
+
+    import numpy as np
+
+    from discrepancy_cases import metadata
+    from maglev_ros.discrepancy.model import CAL_PARAMS, base_spec
+    from maglev_ros.discrepancy.pipeline.judge import combine
+    base = base_spec(metadata({}, "pass", 25.0, 2))
+    kp, kv, e = CAL_PARAMS.index("kp"), CAL_PARAMS.index("kv"), CAL_PARAMS.index("E")
+    # the twin with a structural effect (E re-scaled by its fit) and a delay fitted with lower kp
+    now = base.with_(cal=tuple(0.3 if i in (kp, e) else 0.0 for i in range(len(CAL_PARAMS))), span_e_factor=(0.8, 1.0))
+    delay_cal = tuple(0.03 if i == kp else (0.02 if i == kv else 0.0) for i in range(len(CAL_PARAMS)))
+    hyp = SimpleNamespace(effect="control_delay", category="control",
+                          apply=lambda sp, p: sp.with_(control_delay_s=float(p[0])))
+    hf = SimpleNamespace(hyp=hyp, params=np.array([0.002]), spec=base.with_(cal=delay_cal, control_delay_s=0.002))
+    out = combine(now, hf)
+    assert out.control_delay_s == 0.002 and out.span_e_factor == (0.8, 1.0)
+    assert out.cal[kp] == 0.03 and out.cal[kv] == 0.02 and out.cal[e] == 0.3
+    assert math.isclose(out.cal_factor("kp"), math.exp(0.03))
+    # physics of the guideway keeps the twin's gains
+    zone = SimpleNamespace(hyp=SimpleNamespace(effect="girder_stiffness_loss", category="guideway_structure",
+                                               apply=lambda sp, p: sp.with_(span_e_factor=(1.0, float(p[0])))),
+                           params=np.array([0.7]), spec=base)
+    assert combine(now, zone).cal == now.cal

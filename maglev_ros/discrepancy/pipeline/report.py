@@ -95,6 +95,11 @@ def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config
             why = (f"another form of {hf.hyp.effect}: on the channels they act on it fits the held-out passes "
                    f"less well ({jd.local_ev[id(hf)][1]:.3f} vs {jd.local_ev[id(form[0])][1]:.3f} for "
                    f"{form[0].hyp.label})")
+        elif v.accepted and all(c[0].hyp.effect != hf.hyp.effect for c in chosen):
+            on_top = [c[0].hyp.label for c in chosen if id(c[0]) not in jd.by_peers]
+            why = (f"improves the fit alone (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
+                   + (f"not clearly on top of {', '.join(on_top)}" if len(on_top) < 2 else
+                      "the twin after carries two effects already"))
         else:
             why = "; ".join(reasons) if not v.accepted else (
                 f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "

@@ -10,8 +10,9 @@ from types import SimpleNamespace
 from maglev_ros.discrepancy.pipeline.judge import _one_form_per_effect
 
 
-def _fit(effect, label, category):
-    return SimpleNamespace(hyp=SimpleNamespace(effect=effect, label=label, category=category))
+def _fit(effect, label, category, channels=("M1A", "M8A", "M1G", "M8G")):
+    return SimpleNamespace(hyp=SimpleNamespace(effect=effect, label=label, category=category,
+                                               location={"channels": list(channels)}))
 
 
 def test_the_form_that_fits_its_channels_best_stands_for_the_effect():
@@ -27,9 +28,19 @@ def test_the_form_that_fits_its_channels_best_stands_for_the_effect():
 
 def test_a_single_form_and_whole_recording_hypotheses_are_kept():
     lag = _fit("control_delay", "control_delay.lag", "control")
-    sensor = _fit("sensor_error", "sensor_error@M8G", "instrumentation")
+    sensor = _fit("sensor_error", "sensor_error@M8G", "instrumentation", ("M8G",))
     accepted = [(lag, None, 0.0), (sensor, None, 0.0)]
     assert _one_form_per_effect(accepted, {id(lag): (0.1, 0.05), id(sensor): (0.6, 0.04)}) == accepted
+
+
+def test_sensor_errors_on_two_channels_are_not_forms_of_one_effect():
+    from maglev_ros.discrepancy.pipeline.judge import judged_where_it_acts
+    a = _fit("sensor_error", "sensor_error@M8G", "instrumentation", ("M8G",))
+    b = _fit("sensor_error", "sensor_error@M1G", "instrumentation", ("M1G",))
+    local_ev = {id(a): (0.6, 0.04), id(b): (0.3, 0.2)}
+    assert not judged_where_it_acts(a, local_ev)
+    accepted = [(a, None, 0.0), (b, None, 0.0)]
+    assert _one_form_per_effect(accepted, local_ev) == accepted
 
 
 def test_levitation_physics_on_top_of_another_effect_keeps_the_gains_it_was_fitted_with():

@@ -30,7 +30,7 @@ from ..scale_signature import PeerReferencedFit, ScaleSignature
 from .calibrate import Calibration
 from .discover import Discovery
 from .fit import RECALIBRATED, Fits
-from .judge import Judgement
+from .judge import Judgement, judged_where_it_acts
 from .localize import Localization
 from .propose import Proposal
 from .recalibrate import recalibrate
@@ -89,8 +89,8 @@ def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config
                     f"spread {spread:.1f} < {IDENTIFIABLE_LLR:g}); the calibrated gains absorb a delay of "
                     "that size (a recorded magnet current, which the recording contract does not carry, or a "
                     "faster pass may separate them)",)
-        form = next((c for c in chosen if c[0].hyp.effect == hf.hyp.effect and id(c[0]) in jd.local_ev
-                     and id(hf) in jd.local_ev), None)
+        form = next((c for c in chosen if c[0].hyp.effect == hf.hyp.effect and judged_where_it_acts(c[0], jd.local_ev)
+                     and judged_where_it_acts(hf, jd.local_ev)), None)
         if v.accepted and form is not None:
             why = (f"another form of {hf.hyp.effect}: on the channels they act on it fits the held-out passes "
                    f"less well ({jd.local_ev[id(hf)][1]:.3f} vs {jd.local_ev[id(form[0])][1]:.3f} for "

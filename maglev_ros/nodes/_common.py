@@ -111,9 +111,13 @@ def run_node(node_factory, args=None) -> int:
 
     The node may define ``finished`` (bool attribute) to end the spin on its own.
     """
+    import faulthandler
     import signal
 
     from rclpy.signals import SignalHandlerOptions
+
+    # a crash in native code (DDS, numba, torch) prints every thread's Python stack, not just the signal
+    faulthandler.enable()
 
     # Our own SIGINT/SIGTERM handling: finish the spin loop and shut down in order, instead of
     # rclpy invalidating the context under a running callback.

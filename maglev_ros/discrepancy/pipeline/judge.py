@@ -1,8 +1,8 @@
 """Stage 5, judge: the fitted hypotheses against each other, and what the twin after carries.
 
 Sensor scale faults are told from model error by their band signature against the peers
-(:mod:`..scale_signature`); a scale-like misfit another sensor of the same span shares is the span,
-not one sensor; a fault the twin's own level hides (the whole group off) is judged against the
+(:mod:`..scale_signature`), accelerometer biases by their 1 s means (:mod:`..bias_signature`); a
+scale-like misfit another sensor of the same span shares is the span, not one sensor; a fault the twin's own level hides (the whole group off) is judged against the
 peers' level. Of the hypotheses every gate accepted, the best on the held-out passes is chosen,
 and a second effect of another kind on top when it clearly improves the held-out fit again.
 Instrument findings judged against the peers' level are reported but leave the twin as is.
@@ -17,6 +17,7 @@ import numpy as np
 from maglev_ros.progress import NULL, Progress
 
 from ..acceptance import AcceptanceConfig, Verdict, judge_where_it_acts
+from ..bias_signature import BiasSignature, bias_signature
 from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, levitation_items, model_powers
 from ..fitting import _GAINS, HypFit
@@ -37,7 +38,7 @@ class Judgement:
     final_spec: ModelSpec             # the twin after: calibrated + chosen physics
     rd_fin: list                      # the passes as that twin sees them (its own rail)
     by_peers: dict                    # id(HypFit) -> PeerReferencedFit (judged against the peers' level)
-    signatures: dict                  # id(HypFit) -> (ScaleSignature, Verdict)
+    signatures: dict                  # id(HypFit) -> (ScaleSignature | BiasSignature, Verdict)
     sig_of: dict                      # channel -> ScaleSignature | None
     local_ev: dict                    # id(HypFit) -> held-out NRMSE on its channels (before, after)
 
@@ -63,6 +64,9 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
     signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
     fits = [(hf, signatures[id(hf)][1], d) if id(hf) in signatures else (hf, v, d) for hf, v, d in fits]
     fits = [_scale_needs_its_signature(hf, v, d, sig_of) for hf, v, d in fits]
+    biases = _bias_signatures(fits, [rd.rec for rd in rd_all], local_ev, cfg.acceptance)
+    signatures.update(biases)
+    fits = [(hf, biases[id(hf)][1], d) if id(hf) in biases else (hf, v, d) for hf, v, d in fits]
     def scale_carries(hf):
         nr, _ = fit_report(hf.hyp.apply(base.spec, np.array([0.0, *map(float, hf.params[1:])])), rd_test)
         return not (nr <= held_before * (1 - cfg.acceptance.min_rel_gain)
@@ -88,7 +92,7 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
         rd_fin_test = rd_fin[:1] if same_heldout else rd_fin[1:]
         # a second, different effect on top (e.g. a faulty sensor plus a structural change)
         for hf, v, d in accepted[1:]:
-            if hf.hyp.effect != best[0].hyp.effect and len(chosen) < 2:
+            if hf.hyp.effect != best[0].hyp.effect and len(chosen) < 2 and id(hf) not in biases:
                 combo = combine(final_spec, hf)
                 nr_c, _ = fit_report(combo, rd_fin_test)
                 now, _ = fit_report(final_spec, rd_fin_test)
@@ -96,6 +100,14 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
                         or _helps_where_it_acts(hf, combo, final_spec, rd_fin_test, nr_c, now, local_ev, cfg.acceptance):
                     chosen.append((hf, v, d))
                     final_spec = combo
+    # a sensor bias acts on its channel alone: carried when it fits that channel better on the held-out
+    # passes, whatever else the twin carries
+    for hf, v, d in accepted:
+        if id(hf) in biases and all(hf is not c[0] for c in chosen):
+            combo = combine(final_spec, hf)
+            if _helps_its_channel(hf, combo, final_spec, rd_fin[:1] if same_heldout else rd_fin[1:], cfg.acceptance):
+                chosen.append((hf, v, d))
+                final_spec = combo
     # instrument findings judged against the peers' level: reported, the twin is left as is. Re-judged
     # against the twin with the physics chosen above: a bearing at 5 % of its stiffness made the
     # quarter-span sensor next to it read 3.4x its peers' level against the calibrated twin, and
@@ -209,6 +221,38 @@ def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceC
                                                  f"{after:.3f}) by the scale-fault signature: {sig.explain()}",),
                                         v.heldout_before, v.heldout_after, v.delta_bic))
     return out
+
+
+def _bias_signatures(fits: list, recordings: list[Recording], local_ev: dict, acc: AcceptanceConfig) -> dict:
+    """A bias of one accelerometer barely moves the whole-recording fit (:mod:`..bias_signature`). A
+    sensor_error fit rejected by the held-out gates is accepted when its channel's 1 s means stand out
+    from its peers' in every recording (the signature holds), it beats the calibrated twin on BIC with
+    plausible values, and it clears the held-out gates on its own channel. Returns
+    id(HypFit) -> (signature, new verdict) for those accepted."""
+    out = {}
+    for hf, v, d in fits:
+        h = hf.hyp
+        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
+            continue
+        n = h.location["channels"][0]
+        sig = bias_signature(n, recordings)
+        if sig is None or not sig.holds:
+            continue
+        before, after = local_ev[id(hf)]
+        if (d <= acc.max_delta_bic and h.plausible(hf.params)[0] and after <= before * (1 - acc.min_rel_gain)
+                and before - after >= acc.min_abs_gain):
+            out[id(hf)] = (sig, Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> "
+                                                 f"{after:.3f}) by the bias signature: {sig.explain()}",),
+                                        v.heldout_before, v.heldout_after, v.delta_bic))
+    return out
+
+
+def _helps_its_channel(hf, combo: ModelSpec, now_spec: ModelSpec, rd_test: list, acc: AcceptanceConfig) -> bool:
+    """The held-out gates on the one channel a sensor error acts on (the others are unchanged)."""
+    ch = {hf.hyp.location["channels"][0]}
+    before, _ = fit_report(now_spec, rd_test, ch)
+    after, _ = fit_report(combo, rd_test, ch)
+    return after <= before * (1 - acc.min_rel_gain) and before - after >= acc.min_abs_gain
 
 
 def _scale_needs_its_signature(hf, v: Verdict, d: float, sig_of: dict) -> tuple:

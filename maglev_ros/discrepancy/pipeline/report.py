@@ -19,6 +19,7 @@ from maglev_ros.progress import NULL, Progress
 
 from .. import catalogue as cat
 from ..acceptance import Verdict
+from ..bias_signature import BiasSignature
 from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, model_powers, per_group
 from ..fitting import IDENTIFIABLE_LLR, HypFit, profile_spread
@@ -186,11 +187,14 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
 
 
 def catalogue_entry(hf: HypFit, v: Verdict, dbic: float, spec: ModelSpec,
-           local: tuple[float, float] | None, sig: ScaleSignature | None = None,
+           local: tuple[float, float] | None, sig: ScaleSignature | BiasSignature | None = None,
            peer_fit: PeerReferencedFit | None = None) -> dict:
     h = hf.hyp
     text, params = h.describe(hf.params, spec)
-    if sig is not None:
+    if isinstance(sig, BiasSignature):
+        text += f" Told from the motion of what it sits on by its 1 s means: {sig.explain()}."
+        params = {**params, "bias_level_relative_to_peers": min(sig.level_ratio_per_rec)}
+    elif sig is not None:
         text += (f" Told from model error by its signature: {sig.explain()} (model error differs band "
                  f"by band).")
         params = {**params, "scale_relative_to_peers": sig.relative_scale}

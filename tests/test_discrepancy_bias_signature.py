@@ -79,3 +79,32 @@ def test_not_testable_without_peers_or_segments_or_for_other_quantities():
     assert bias_signature("A3", [_recording(1, 3.0, b)]) is None                 # < 4 whole seconds
     assert bias_signature("A3", [_recording(1, 12.0, b, group="gap")]) is None   # not an accelerometer
     assert bias_signature("nope", [_recording(1, 12.0, b)]) is None
+
+
+def _sensor_fit(channel: str, accepted: bool = False):
+    from types import SimpleNamespace
+
+    from maglev_ros.discrepancy.acceptance import Verdict
+    hyp = SimpleNamespace(effect="sensor_error", label=f"sensor_error@{channel}", category="instrumentation",
+                          location={"channels": [channel]}, plausible=lambda p: (True, ""))
+    hf = SimpleNamespace(hyp=hyp, params=np.array([0.0, 0.02, -0.002]))
+    return hf, Verdict(accepted, ("held-out NRMSE 0.143 -> 0.138 is not a clear improvement",), 0.143, 0.138, -200.0)
+
+
+def test_the_judge_accepts_a_bias_on_its_channel_only_where_the_signature_holds():
+    """A sensor_error fit the whole recording cannot accept is accepted on its channel when the bias
+    signature holds there; the same evidence on a sound channel, a weak gain on its channel or no
+    BIC support is not enough."""
+    from maglev_ros.discrepancy.acceptance import AcceptanceConfig
+    from maglev_ros.discrepancy.pipeline.judge import _bias_signatures
+    acc = AcceptanceConfig()
+    recs = [_recording(s, d, _wandering_bias(s + 100, d, 0.03)) for s, d in ((1, 12.0), (2, 10.0))]
+    biased, sound = _sensor_fit("A3"), _sensor_fit("A5")
+    weak, no_bic = _sensor_fit("A3"), _sensor_fit("A3")
+    fits = [(*biased, -200.0), (*sound, -200.0), (*weak, -200.0), (*no_bic, acc.max_delta_bic + 1.0)]
+    local_ev = {id(biased[0]): (0.30, 0.256), id(sound[0]): (0.30, 0.256), id(no_bic[0]): (0.30, 0.256),
+                id(weak[0]): (0.30, 0.30 * (1 - 0.5 * acc.min_rel_gain))}
+    out = _bias_signatures(fits, recs, local_ev, acc)
+    assert set(out) == {id(biased[0])}
+    sig, verdict = out[id(biased[0])]
+    assert verdict.accepted and sig.channel == "A3" and "bias signature" in verdict.reasons[0]

@@ -55,6 +55,7 @@ class BiasSignature:
     level_ratio_per_rec: tuple[float, ...]    # its bias level over its peers' median, per recording
     mean_rms_per_rec: tuple[float, ...]       # RMS of its 1 s means, per recording [its unit]
     peers: tuple[str, ...]
+    group: str = ""
 
     @property
     def holds(self) -> bool:
@@ -63,20 +64,15 @@ class BiasSignature:
     def explain(self) -> str:
         r = ", ".join(f"{x:.0f}" for x in self.level_ratio_per_rec)
         m = ", ".join(f"{x:.3g}" for x in self.mean_rms_per_rec)
-        return (f"its 1 s means (RMS {m} per recording) are x{r} those of {', '.join(self.peers)} relative to "
-                f"their vibration (sound sensors: within ~{MIN_LEVEL_RATIO / 2:.0f}x of each other): a bias of the "
-                "sensor, not a motion of what it sits on")
-
-    def to_dict(self) -> dict:
-        return {"channel": self.channel, "level_ratio_per_recording": list(self.level_ratio_per_rec),
-                "mean_rms_per_recording": list(self.mean_rms_per_rec), "peers": list(self.peers),
-                "holds": self.holds}
+        return (f"its 1 s means (RMS {m} per recording), relative to its vibration, are x{r} the median of the "
+                f"other {len(self.peers)} {self.group or 'accelerometer'} channels (sound sensors: within "
+                f"~{MIN_LEVEL_RATIO / 2:.0f}x of each other): a bias of the sensor, not a motion of what it sits on")
 
 
 def bias_signature(channel: str, recordings: list[Recording]) -> BiasSignature | None:
     """The bias signature of an accelerometer against the other accelerometers of its group, over
     every recording that holds it with at least ``MIN_PEERS`` peers; None when none does."""
-    ratios, means, peers = [], [], set()
+    ratios, means, peers, group = [], [], set(), ""
     for rec in recordings:
         ch = rec.channels.get(channel)
         if ch is None or ch.group not in ACCEL_GROUPS:
@@ -93,7 +89,8 @@ def bias_signature(channel: str, recordings: list[Recording]) -> BiasSignature |
         ratios.append(lv[0] / lv[1] / med)
         means.append(lv[0])
         peers |= set(others)
+        group = ch.group
     if not ratios:
         return None
-    return BiasSignature(channel, tuple(ratios), tuple(means), tuple(sorted(peers)))
+    return BiasSignature(channel, tuple(ratios), tuple(means), tuple(sorted(peers)), group)
 

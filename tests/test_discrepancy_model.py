@@ -111,14 +111,14 @@ def test_sensor_error_applies_scale_offset_drift():
 
 # ---------------------------------------------------------------------------------------------
 # magnet_nonlinearity: smooth current saturation in the twin's force kernel
-def _sat_run(limit, speed=25.0, dur=2.5):
+def _sat_run(limit, speed=25.0, dur=2.5, sides="both"):
     from maglev_ros.twin.coupling import TwinStepper
     from maglev_ros.twin.design import default_line
     cfg = twin_config()
     line = default_line(cfg, 3)
     irr = lambda x: 1e-3 * np.sin(2 * np.pi * x / 5.0)     # 5 Hz at 25 m/s
     st = TwinStepper(cfg, line, sensors={"m": 18.0}, irregularity=irr, fs_out_hz=1000.0,
-                     start_speed_mps=speed, current_limit_a=limit)
+                     start_speed_mps=speed, current_limit_a=limit, current_limit_sides=sides)
     return cfg, st.advance(dur, speed)
 
 
@@ -149,6 +149,27 @@ def test_saturated_current_stays_inside_the_headroom_and_gaps_grow():
     assert d1.max() >= lim * math.tanh(peak / lim) * 0.9
 
 
+def test_a_current_limited_above_only_follows_the_demand_below_and_skews_the_magnets():
+    """A supply's maximum current: above I0 the force sees I0 + L tanh((I - I0) / L), below it the
+    commanded current itself. The magnets' accelerations then lose their symmetry about zero."""
+    from scipy.stats import skew
+    cfg, r0 = _sat_run(None)
+    i0 = cfg.levitation.static_current_a
+    on = r0.time_s > 0.5
+    lim = 0.5 * np.max(np.abs(r0.magnet_current_a - i0))
+    _, r1 = _sat_run(lim, sides="upper")
+    _, r2 = _sat_run(lim)
+    d1 = r1.magnet_current_a - i0
+    assert d1.max() <= lim * (1 + 1e-12) and d1.min() < -lim        # limited above only
+    assert r1.iterations.max() < cfg.numerics.max_iterations
+    acc = r1.vehicle_acc_mps2[on][:, [r1.dof_names.index(n) for n in r1.dof_names if n.startswith("mag")][:1]]
+    acc0 = r0.vehicle_acc_mps2[on][:, [r0.dof_names.index(n) for n in r0.dof_names if n.startswith("mag")][:1]]
+    assert abs(float(skew(acc[:, 0]))) > abs(float(skew(acc0[:, 0]))) + 0.2
+    # two-sided and one-sided limits differ only where the demand is below I0
+    assert np.max(np.abs(r2.magnet_current_a - r1.magnet_current_a)) > 0.1 * lim
+
+
+
 def test_the_twin_follows_the_measured_position_when_the_position_stream_starts_with_the_sensors():
     """Where the position stream starts with the sensors, the twin (which starts one sample before
     the first sample) must be placed by extrapolating with the speed, not at the first position:
@@ -172,3 +193,17 @@ def test_the_twin_follows_the_measured_position_when_the_position_stream_starts_
     v = float(np.mean(rec.speed_mps))
     # within a quarter of the distance travelled in one sample period (the speed integration's drift)
     assert np.max(np.abs(res.position_m[inside] - measured)) < 0.25 * v / fs
+
+
+@pytest.mark.parametrize("i_lo", [0.0, 2.0])
+def test_saturation_law_and_its_slope(i_lo):
+    """The kernel's current law against tanh written out, and its slope against a central difference."""
+    from maglev_ros.twin.coupling import _sat_current, _sat_slope
+    i0, i_hi = 25.0, 1.5
+    for c in np.linspace(20.0, 30.0, 41):
+        x = c - i0
+        want = i0 + (i_hi * np.tanh(x / i_hi) if x >= 0 else (i_lo * np.tanh(x / i_lo) if i_lo > 0 else x))
+        assert _sat_current(c, i0, i_lo, i_hi) == pytest.approx(want, abs=1e-12)
+        h = 1e-6
+        fd = (_sat_current(c + h, i0, i_lo, i_hi) - _sat_current(c - h, i0, i_lo, i_hi)) / (2 * h)
+        assert _sat_slope(c, i0, i_lo, i_hi) == pytest.approx(fd, abs=1e-6)

@@ -330,7 +330,11 @@ def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float
                       plausible=plaus, describe=desc)
 
 
-def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float, static_current_a: float) -> Hypothesis:
+MAGNET_NONLINEARITY_FORMS = ("both", "upper")   # current limited on both sides of I0, or above it only
+
+
+def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float, static_current_a: float,
+                                   form: str = "both") -> Hypothesis:
     """Magnet current saturation (chopper/core): the force sees I0 + L tanh((I - I0) / L).
 
     Parameter: p = L / demand_a, the saturation current headroom L relative to the calibrated
@@ -340,30 +344,43 @@ def magnet_nonlinearity_hypothesis(vehicle_channels: list[str], demand_a: float,
     demand on one simulated case), so a true headroom of 1.1-1.2 sits near 0.9 of it; a twin that loses
     levitation fails its simulation and is no fit.
     A smooth limit keeps the linearised magnet (slope 1 at the static current), so it is not a
-    change of the calibrated gains in disguise: it only compresses large current demands."""
+    change of the calibrated gains in disguise: it only compresses large current demands.
+    ``form``: "both" limits the current on both sides of I0; "upper" only above it (a supply's maximum
+    current: the static current is far from zero, so nothing limits it below), with ``demand_a`` the
+    largest excursion above I0. The upper form skews the magnets' accelerations (a recording with
+    such a limit: skewness -0.8 to -1.6 against +0.2 to +0.5 on clean ones), the two-sided one cannot."""
+    if form not in MAGNET_NONLINEARITY_FORMS:
+        raise ValueError(f"magnet_nonlinearity form: expected one of {MAGNET_NONLINEARITY_FORMS}, got {form!r}")
     demand = max(float(demand_a), 1e-6)
 
     def apply(sp, p):
-        return sp.with_(current_limit_a=float(p[0]) * demand)
+        return sp.with_(current_limit_a=float(p[0]) * demand, current_limit_sides=form)
+
+    # a limit on both sides takes away force authority both ways: below ~half the peak demand the twin
+    # could not have followed the rail; above I0 only, the magnet keeps all of it below I0 (it can always
+    # pull less), so a far smaller headroom still levitates and the simulation itself is the check
+    lowest = 0.55 if form == "both" else 0.2
 
     def plaus(p):
         if p[0] > 3.0:
             return False, (f"fitted current headroom {p[0]:.1f} times the largest demand means the current "
                            f"never saturates")
-        if p[0] < 0.55:
+        if p[0] < lowest:
             return False, (f"fitted current headroom {p[0]:.2f} times the largest demand: the magnets could not "
                            f"have followed this rail")
         return True, ""
 
     def desc(p, sp):
         L = float(p[0]) * demand
+        where = (f"saturates about {L:.2f} A from its static {static_current_a:.1f} A" if form == "both" else
+                 f"cannot rise more than about {L:.2f} A above its static {static_current_a:.1f} A")
         return (f"The levitation magnets cannot deliver the current the control asks for at high demand: the "
-                f"current saturates about {L:.2f} A from its static {static_current_a:.1f} A (supply voltage "
-                f"or iron saturation), so the force lags the demand where the rail is roughest and the gaps "
-                f"vary more than the twin predicts.",
+                f"current {where} (supply voltage or current limit, or iron saturation), so the force lags the "
+                f"demand where the rail is roughest and the gaps vary more than the twin predicts.",
                 {"current_headroom_a": L, "static_current_a": float(static_current_a),
-                 "headroom_over_peak_demand": float(p[0])})
-    return Hypothesis("magnet_nonlinearity", "magnet_nonlinearity", ("headroom_over_peak_demand",), (0.5,),
+                 "headroom_over_peak_demand": float(p[0]), "limited_sides": form})
+    label = "magnet_nonlinearity" if form == "both" else "magnet_nonlinearity.upper"
+    return Hypothesis("magnet_nonlinearity", label, ("headroom_over_peak_demand",), (0.5 if form == "both" else 0.15,),
                       (4.0,), (1.5,), apply,
                       location={"position_m": None, "span": None, "channels": vehicle_channels},
                       plausible=plaus, describe=desc, log_search=True)

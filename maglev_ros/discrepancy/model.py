@@ -66,6 +66,7 @@ class ModelSpec:
     carbody_bend_hz: float | None = None
     carbody_zeta: float = 0.02
     current_limit_a: float | None = None                    # saturation L [A] (magnet_nonlinearity)
+    current_limit_sides: str = "both"                       # "both" or "upper" (twin.coupling)
     resonator: Any = None                                   # discovery: added girder resonator (.attachment.Resonator)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
@@ -194,7 +195,8 @@ def build_stepper(spec: ModelSpec, sensors: Mapping[str, float], *, fs_out_hz: f
     cfg = spec.effective_config()
     st = TwinStepper(cfg, spec.effective_spans(), sensors=dict(sensors), irregularity=irregularity,
                      fs_out_hz=fs_out_hz, start_position_m=start_position_m, start_speed_mps=start_speed_mps,
-                     t0_s=t0_s, init="rest", current_limit_a=spec.current_limit_a)
+                     t0_s=t0_s, init="rest", current_limit_a=spec.current_limit_a,
+                     current_limit_sides=spec.current_limit_sides)
     st = stepper_customizer(spec)(st)
     st._init_static()
     return st
@@ -229,6 +231,7 @@ def stepper_customizer(spec: ModelSpec) -> Callable[[TwinStepper], TwinStepper]:
             changed = True
         if spec.current_limit_a is not None:
             st.current_limit_a = float(spec.current_limit_a)
+            st.current_limit_sides = spec.current_limit_sides
         if changed:
             st._setup_matrices()
             st._x = np.zeros(st._nx)

@@ -45,6 +45,7 @@ from maglev_ros.twin.guideway import Guideway, ModalBasis
 from maglev_ros.twin.levitation import VehicleSystem, build_vehicle
 
 METHODS = ("newmark", "separated")
+CURRENT_LIMIT_SIDES = ("both", "upper")    # which side of the static current a current limit acts on
 _NO_EXCESS = np.zeros(1)
 
 
@@ -190,7 +191,8 @@ class TwinStepper:
                  irregularity: Any = None, fs_out_hz: float = 1000.0, start_position_m: float = 0.0,
                  start_speed_mps: float = 0.0, t0_s: float = 0.0, method: str = "newmark",
                  dt_max_s: float | None = None, init: str = "static", block_steps: int = 1024,
-                 current_limit_a: float | None = None, reference: bool = False):
+                 current_limit_a: float | None = None, reference: bool = False,
+                 current_limit_sides: str = "both"):
         if method not in METHODS:
             raise UserError(f"method: expected one of {METHODS}, got {method!r}")
         if not fs_out_hz > 0:
@@ -204,6 +206,11 @@ class TwinStepper:
         if current_limit_a is not None and method != "newmark":
             raise UserError("current_limit_a: current saturation is available with method='newmark' only")
         self.current_limit_a = None if current_limit_a is None else float(current_limit_a)
+        # "both": I0 +- L; "upper": the current cannot exceed I0 + L but follows any lower demand (a
+        # supply's maximum current: the magnet's current is far from zero at the static gap)
+        if current_limit_sides not in CURRENT_LIMIT_SIDES:
+            raise UserError(f"current_limit_sides: expected one of {CURRENT_LIMIT_SIDES}, got {current_limit_sides!r}")
+        self.current_limit_sides = current_limit_sides
         self.spans: tuple[SpanSpec, ...] = line_spans(line, config)
         num = config.numerics
         self.guideway = Guideway(self.spans, num.n_elements_per_span)
@@ -410,11 +417,12 @@ class TwinStepper:
         return parts[0] if len(parts) == 1 else PassResult.concat(parts)
 
     def _saturation(self, lev) -> tuple:
-        """(sat, unused, L, unused) for the kernel: smooth current limit L = current_limit_a."""
+        """(sat, L below, L above, unused) for the kernel: smooth current limit L = current_limit_a
+        (below: 0, no limit, when only the upper side is limited)."""
         lim = self.current_limit_a
         if lim is None or not math.isfinite(lim):
             return False, 0.0, 0.0, _NO_EXCESS
-        return True, 0.0, float(lim), _NO_EXCESS
+        return True, (float(lim) if self.current_limit_sides == "both" else 0.0), float(lim), _NO_EXCESS
 
     def _empty(self) -> PassResult:
         m, nd, ns = self._m, self.vehicle.model.n_dof, self.sensor_x_m.size
@@ -629,7 +637,30 @@ def _mvt_into(out, At, x):
             out[i] += At[j, i] * xj
 
 
-def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GLt, phit, phiF, dphit, gq, SENt, a2, v, m):
+def _sat_current(c, I0, i_lo, i_hi):
+    """The current the force sees for a commanded current c: I0 + L tanh((c - I0) / L) on a limited
+    side (L = i_hi above I0, i_lo below it; i_lo = 0: no limit below)."""
+    x = c - I0
+    if x >= 0.0:
+        return I0 + i_hi * np.tanh(x / i_hi)
+    if i_lo > 0.0:
+        return I0 + i_lo * np.tanh(x / i_lo)
+    return c
+
+
+def _sat_slope(c, I0, i_lo, i_hi):
+    """d(_sat_current)/dc."""
+    x = c - I0
+    if x >= 0.0:
+        t = np.tanh(x / i_hi)
+        return 1.0 - t * t
+    if i_lo > 0.0:
+        t = np.tanh(x / i_lo)
+        return 1.0 - t * t
+    return 1.0
+
+
+def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_lo, i_hi, GLt, phit, phiF, dphit, gq, SENt, a2, v, m):
     """Newton step dN for res(N) = F_true(N) - F_coupled(N) = 0 with saturating currents.
 
     Within a step the command current and the gap are affine in the force remainder N (rail
@@ -653,8 +684,10 @@ def _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, lim, GLt, phit, phiF, dphit
     D_z = np.ascontiguousarray(gz[:, :m]) @ dy + np.ascontiguousarray(gz[:, m:m2]) @ dyd + gz[:, m2:m3]
     D_g = dy - D_z
     f = Cc * (cur / gap) ** 2
-    th = np.tanh((cur_cmd - I0) / lim)
-    dF_di = 2.0 * f / cur * (1.0 - th * th)
+    sl = np.empty(m)
+    for a in range(m):
+        sl[a] = _sat_slope(cur_cmd[a], I0, i_lo, i_hi)
+    dF_di = 2.0 * f / cur * sl
     dF_dg = -2.0 * f / gap
     J = dF_di.reshape(-1, 1) * D_i + dF_dg.reshape(-1, 1) * D_g - SEN
     return np.linalg.solve(J, res)
@@ -667,12 +700,13 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OLt, GLt, ABd0t, Bd1t
     """Time loop over one block (state arrays x, u, q, qd, qdd, F updated in place).
 
     ``sat``: magnet current saturation (``TwinStepper.current_limit_a`` = L, off by default): the
-    force is made by I_eff = I0 + L tanh((I - I0) / L) (smooth: slope 1 at the static current, so
+    force is made by I_eff = I0 + L tanh((I - I0) / L) (:func:`_sat_current`, above I0 with
+    L = ``i_hi``, below with ``i_lo``, none below when ``i_lo`` = 0; smooth: slope 1 at the static current, so
     the linearised model is unchanged, and |I_eff - I0| < L; a hard clip makes the EMS magnet
     lose levitation as soon as demand exceeds L, a smooth limit degrades gradually like a
     saturating core/chopper). The plain update N += res diverges when the current saturates
     (the control law's acceleration feed-through path is cut), so with ``sat`` the force
-    remainder is solved by Newton (:func:`_sat_newton_step`). ``i_lo``, ``sat_excess`` unused.
+    remainder is solved by Newton (:func:`_sat_newton_step`). ``sat_excess`` unused.
 
     Matrices come transposed (``*t``; ``phiF`` = phi^T's transpose, the magnet-to-mode force map):
     ``_mvt_into`` then sums each product over the same index order as a row-by-row product, in a loop
@@ -777,14 +811,14 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OLt, GLt, ABd0t, Bd1t
             if sat:
                 for a in range(m):
                     cur_cmd[a] = cur[a]
-                    cur[a] = I0 + i_hi * np.tanh((cur_cmd[a] - I0) / i_hi)
+                    cur[a] = _sat_current(cur_cmd[a], I0, i_lo, i_hi)
             for a in range(m):
                 Ft[a] = Cc[a] * (cur[a] / gap[a]) ** 2
             if newmark:
                 for a in range(m):
                     res[a] = Ft[a] - Fc[a]
                 if sat:
-                    dN = _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_hi, GLt, phit, phiF, dphit,
+                    dN = _sat_newton_step(res, cur, cur_cmd, gap, Cc, I0, i_lo, i_hi, GLt, phit, phiF, dphit,
                                           gq, SENt_all[i], a2, v, m)
                     for a in range(m):
                         N[a] = N[a] - dN[a]
@@ -835,7 +869,7 @@ def _kernel(newmark, h, g0, I0, Cc, F0, tol_abs, max_iter, OLt, GLt, ABd0t, Bd1t
                 gap[a] = g0 + y[a] - o2[a]
                 cur[a] = I0 + o2[m3 + a]
                 if sat:
-                    cur[a] = I0 + i_hi * np.tanh((cur[a] - I0) / i_hi)
+                    cur[a] = _sat_current(cur[a], I0, i_lo, i_hi)
                 rec_mag[j, 0, a] = o2[m2 + a]
                 rec_mag[j, 1, a] = gap[a]
                 rec_mag[j, 2, a] = cur[a]
@@ -871,6 +905,8 @@ try:  # optional accelerator
     import numba as _numba
     _mvt_into = _numba.njit(cache=True)(_mvt_into)
     _absmax = _numba.njit(cache=True)(_absmax)
+    _sat_current = _numba.njit(cache=True)(_sat_current)
+    _sat_slope = _numba.njit(cache=True)(_sat_slope)
     _sat_newton_step = _numba.njit(cache=True)(_sat_newton_step)
     _KERNEL = _numba.njit(cache=True)(_kernel)
     _FREE = _numba.njit(cache=True)(_free_steps)

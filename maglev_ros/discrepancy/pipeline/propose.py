@@ -127,10 +127,11 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False,
     if veh:
         fs_veh = min(rec.channels[n].sample_rate_hz for n in veh)
         hyps += [cat.control_delay_hypothesis(veh, form, fs_veh) for form in cat.CONTROL_DELAY_FORMS]
-        demand = current_demand_a(spec, rds)
-        if demand > 0:
-            hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demand,
-                                                            spec.config.levitation.static_current_a))
+        demands = current_demands_a(spec, rds)
+        for form in cat.MAGNET_NONLINEARITY_FORMS:
+            if demands[form] > 0:
+                hyps.append(cat.magnet_nonlinearity_hypothesis(veh, demands[form],
+                                                                spec.config.levitation.static_current_a, form))
     if body:
         hyps.append(cat.carbody_hypothesis(body + veh))
     if gw:
@@ -186,20 +187,21 @@ def guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "g
     return out
 
 
-def current_demand_a(spec: ModelSpec, rds: list[RecData]) -> float:
-    """Largest |I - I0| of the calibrated twin's magnets on the training passes while the vehicle is
-    over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
+def current_demands_a(spec: ModelSpec, rds: list[RecData]) -> dict[str, float]:
+    """{"both": largest |I - I0|, "upper": largest I - I0} of the calibrated twin's magnets on the
+    training passes while the vehicle is over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
     reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
     2.7 A), and a saturation limit relative to it could not come down to the true one."""
     from ..irregularity import vehicle_over_valid
     from ..model import simulate
-    peak = 0.0
+    peak = {"both": 0.0, "upper": 0.0}
     for rd in rds:
         res = simulate(spec, rd.rec)
         if res is None or res.magnet_current_a.size == 0:
             continue
         ok = vehicle_over_valid(rd.rec, res.time_s, spec.effective_config().vehicle.magnet_offsets_m)
-        dI = np.abs(res.magnet_current_a[ok] - spec.config.levitation.static_current_a)
+        dI = res.magnet_current_a[ok] - spec.config.levitation.static_current_a
         if dI.size:
-            peak = max(peak, float(dI.max()))
+            peak["both"] = max(peak["both"], float(np.abs(dI).max()))
+            peak["upper"] = max(peak["upper"], float(dI.max()))
     return peak

@@ -10,9 +10,9 @@ a biased sensor stands out from its peers by a large factor, whatever the model 
 Why this is needed: a bias of one channel of 15 barely moves the whole-recording held-out NRMSE
 (an accelerometer wandering by 0.01-0.03 m/s^2: 0.143 -> 0.138, its own channel 0.30 -> 0.26), so
 the gates that judge an extension on the whole recording cannot accept it. Measured, as the ratio to
-the peers' median: sound channels <= 2.9 on partner-sim's 42 recordings (14 lines, two passes and an
-ambient recording each) and <= 3.6 on the real weimar-frame ambient records (different sensor
-kinds side by side); that wandering bias 27-64 in every recording.
+the peers' median: sound channels <= 2.9 on an independent simulator's 42 recordings (14 lines, two
+passes and an ambient recording each) and <= 3.6 on the real weimar-frame ambient records (different
+sensor kinds side by side); that wandering bias 27-64 in every recording.
 """
 from __future__ import annotations
 

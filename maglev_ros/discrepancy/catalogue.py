@@ -8,7 +8,7 @@ plausible, and how to say it to a rail engineer.
 |---|---|---|---|
 | bearing_stiffness | boundary_condition | log10 kb factor of one span end | that span's mode lower, larger response near that end, mostly when the vehicle is there |
 | control_delay | control | transport delay or first-order lag tau [s] | vehicle gap/accel amplitude at levitation frequencies, all along the line; above 1/(2 pi tau) a delay turns the phase, a lag attenuates |
-| magnet_nonlinearity | magnetic_force | current headroom L / peak demand | saturating current (I0 + L tanh((I-I0)/L)): extra gap excursions where demand is high |
+| magnet_nonlinearity | magnetic_force | current headroom L / peak demand | saturating current (I0 + L tanh((I-I0)/L), on both sides of I0 or above it only): extra gap excursions where demand is high; limited above only, skewed magnet accelerations |
 | ambient_excitation | excitation | log10 modal force PSD | guideway vibration at its modes before entry and after exit (no vehicle) |
 | girder_stiffness_loss | guideway_structure | relative EI loss of one span, or of one zone (a quarter) of an instrumented span | that span deflects more, its modes drop (a zone: each mode by its curvature there) |
 | carbody_flexibility | vehicle_structure | car-body bending frequency [Hz] | vehicle accel band near the bending frequency |

@@ -2,10 +2,11 @@
 
 Sensor scale faults are told from model error by their band signature against the peers
 (:mod:`..scale_signature`), accelerometer biases by their 1 s means (:mod:`..bias_signature`); a
-scale-like misfit another sensor of the same span shares is the span, not one sensor; a fault the twin's own level hides (the whole group off) is judged against the
-peers' level. Of the hypotheses every gate accepted, the best on the held-out passes is chosen,
-and a second effect of another kind on top when it clearly improves the held-out fit again.
-Instrument findings judged against the peers' level are reported but leave the twin as is.
+scale-like misfit another sensor of the same span shares is the span, not one sensor; a fault the
+twin's own level hides (the whole group off) is judged against the peers' level. Of the hypotheses
+every gate accepted, the best on the held-out passes is chosen, and a second effect of another kind
+on top when it clearly improves the held-out fit again; a sensor bias when it fits its own channel
+better. Instrument findings judged against the peers' level are reported but leave the twin as is.
 """
 from __future__ import annotations
 

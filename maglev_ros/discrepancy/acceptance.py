@@ -41,6 +41,12 @@ class AcceptanceConfig:
     max_delta_bic: float = -10.0
     max_collinear: float = 0.97
 
+    def clear_gain(self, before: float, after: float) -> bool:
+        """Gate 1's margins: the held-out error drops by ``min_rel_gain`` relatively and ``min_abs_gain``
+        absolutely."""
+        gain = before - after
+        return gain >= self.min_rel_gain * before and gain >= self.min_abs_gain
+
 
 @dataclass(frozen=True)
 class Verdict:
@@ -67,8 +73,7 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
     why = []
     if heldout_llr is not None and heldout_llr < cfg.min_heldout_llr:
         why.append(f"held-out log-likelihood gain {heldout_llr:.1f} is below {cfg.min_heldout_llr:g}")
-    gain = heldout_before - heldout_after
-    if not (gain >= cfg.min_rel_gain * heldout_before and gain >= cfg.min_abs_gain):
+    if not cfg.clear_gain(heldout_before, heldout_after):
         why.append(f"held-out NRMSE {heldout_before:.3f} -> {heldout_after:.3f} is not a clear improvement "
                    f"(needs >= {cfg.min_rel_gain * 100:.0f} % and >= {cfg.min_abs_gain})")
     if not delta_bic <= cfg.max_delta_bic:

@@ -475,8 +475,7 @@ def term_gate_reasons(before: float, after: float, dbic: float, acc,
     ``before`` -> ``after`` (relative and absolute gain) and training delta BIC. ``what`` names the
     held-out error in the message."""
     why = []
-    gain = before - after
-    if not (gain >= acc.min_rel_gain * before and gain >= acc.min_abs_gain):
+    if not acc.clear_gain(before, after):
         why.append(f"{what.format(b=before, a=after)} is not a clear improvement")
     if not dbic <= acc.max_delta_bic:
         why.append(f"delta BIC {dbic:+.1f} does not beat the linear terms (needs <= {acc.max_delta_bic:g})")

@@ -70,8 +70,7 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
     fits = [(hf, biases[id(hf)][1], d) if id(hf) in biases else (hf, v, d) for hf, v, d in fits]
     def scale_carries(hf):
         nr, _ = fit_report(hf.hyp.apply(base.spec, np.array([0.0, *map(float, hf.params[1:])])), rd_test)
-        return not (nr <= held_before * (1 - cfg.acceptance.min_rel_gain)
-                    and held_before - nr >= cfg.acceptance.min_abs_gain)
+        return not cfg.acceptance.clear_gain(held_before, nr)
     fits = _peer_check(fits, rd_train[0].rec, {ch for ch, sg in sig_of.items() if sg is not None and sg.holds},
                        cfg.acceptance.max_delta_bic, scale_carries)
     # a scale fault whose signature holds but which the twin's own level hides (the whole group off)
@@ -97,7 +96,7 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
                 combo = combine(final_spec, hf)
                 nr_c, _ = fit_report(combo, rd_fin_test)
                 now, _ = fit_report(final_spec, rd_fin_test)
-                if (nr_c < now * (1 - cfg.acceptance.min_rel_gain) and now - nr_c >= cfg.acceptance.min_abs_gain) \
+                if cfg.acceptance.clear_gain(now, nr_c) \
                         or _helps_where_it_acts(hf, combo, final_spec, rd_fin_test, nr_c, now, local_ev, cfg.acceptance):
                     chosen.append((hf, v, d))
                     final_spec = combo
@@ -197,6 +196,21 @@ def _span_wide(sig_of: dict, recs: list, rec: Recording, spec: ModelSpec) -> dic
     return out
 
 
+def _rejected_sensor_fits(fits: list, local_ev: dict):
+    """(fit, verdict, delta BIC, channel, held-out NRMSE on the channel before, after) of every
+    sensor scale/offset/drift fit the held-out gates rejected that has evidence on its channel."""
+    for hf, v, d in fits:
+        h = hf.hyp
+        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
+            continue
+        yield (hf, v, d, h.location["channels"][0], *local_ev[id(hf)])
+
+
+def _accepted_on_its_channel(v: Verdict, n: str, before: float, after: float, by: str) -> Verdict:
+    return Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> {after:.3f}) by {by}",),
+                   v.heldout_before, v.heldout_after, v.delta_bic)
+
+
 def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceConfig) -> dict:
     """A scale fault of one channel barely moves the whole-recording fit, which the held-out gates
     judge (see :mod:`.scale_signature`). A sensor_error fit rejected by them is accepted
@@ -205,22 +219,14 @@ def _scale_signatures(fits: list, sig_of: dict, local_ev: dict, acc: AcceptanceC
     held-out fit on the channel itself improves clearly (>= 4x the relative gain the whole recording
     needs). Returns id(HypFit) -> (signature, new verdict) for those accepted."""
     out = {}
-    for hf, v, d in fits:
-        h = hf.hyp
-        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
-            continue
-        n = h.location["channels"][0]
+    for hf, v, d, n, before, after in _rejected_sensor_fits(fits, local_ev):
         sig = sig_of.get(n)
         if sig is None or not sig.holds:
             continue
-        ln_s = float(hf.params[0])
-        before, after = local_ev[id(hf)]
-        plaus = h.plausible(hf.params)
-        if (np.sign(ln_s) == np.sign(sig.log_scale_per_pass[0]) and d <= acc.max_delta_bic and plaus[0]
-                and after <= before * (1 - 4 * acc.min_rel_gain)):
-            out[id(hf)] = (sig, Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> "
-                                                 f"{after:.3f}) by the scale-fault signature: {sig.explain()}",),
-                                        v.heldout_before, v.heldout_after, v.delta_bic))
+        if (np.sign(float(hf.params[0])) == np.sign(sig.log_scale_per_pass[0]) and d <= acc.max_delta_bic
+                and hf.hyp.plausible(hf.params)[0] and after <= before * (1 - 4 * acc.min_rel_gain)):
+            out[id(hf)] = (sig, _accepted_on_its_channel(v, n, before, after,
+                                                         f"the scale-fault signature: {sig.explain()}"))
     return out
 
 
@@ -231,29 +237,19 @@ def _bias_signatures(fits: list, recordings: list[Recording], local_ev: dict, ac
     plausible values, and it clears the held-out gates on its own channel. Returns
     id(HypFit) -> (signature, new verdict) for those accepted."""
     out = {}
-    for hf, v, d in fits:
-        h = hf.hyp
-        if v.accepted or h.effect != "sensor_error" or h.label.endswith(".dropout") or id(hf) not in local_ev:
-            continue
-        n = h.location["channels"][0]
+    for hf, v, d, n, before, after in _rejected_sensor_fits(fits, local_ev):
         sig = bias_signature(n, recordings)
         if sig is None or not sig.holds:
             continue
-        before, after = local_ev[id(hf)]
-        if (d <= acc.max_delta_bic and h.plausible(hf.params)[0] and after <= before * (1 - acc.min_rel_gain)
-                and before - after >= acc.min_abs_gain):
-            out[id(hf)] = (sig, Verdict(True, (f"accepted on its channel (held-out NRMSE of {n} {before:.3f} -> "
-                                                 f"{after:.3f}) by the bias signature: {sig.explain()}",),
-                                        v.heldout_before, v.heldout_after, v.delta_bic))
+        if d <= acc.max_delta_bic and hf.hyp.plausible(hf.params)[0] and acc.clear_gain(before, after):
+            out[id(hf)] = (sig, _accepted_on_its_channel(v, n, before, after, f"the bias signature: {sig.explain()}"))
     return out
 
 
 def _helps_its_channel(hf, combo: ModelSpec, now_spec: ModelSpec, rd_test: list, acc: AcceptanceConfig) -> bool:
     """The held-out gates on the one channel a sensor error acts on (the others are unchanged)."""
     ch = {hf.hyp.location["channels"][0]}
-    before, _ = fit_report(now_spec, rd_test, ch)
-    after, _ = fit_report(combo, rd_test, ch)
-    return after <= before * (1 - acc.min_rel_gain) and before - after >= acc.min_abs_gain
+    return acc.clear_gain(fit_report(now_spec, rd_test, ch)[0], fit_report(combo, rd_test, ch)[0])
 
 
 def _scale_needs_its_signature(hf, v: Verdict, d: float, sig_of: dict) -> tuple:

@@ -189,9 +189,10 @@ def guideway_spans(rec: Recording, spec: ModelSpec, groups=("guideway_accel", "g
 
 def current_demands_a(spec: ModelSpec, rds: list[RecData]) -> dict[str, float]:
     """{"both": largest |I - I0|, "upper": largest I - I0} of the calibrated twin's magnets on the
-    training passes while the vehicle is over the reconstructed rail (where the twin is compared). Not over the whole run: the end of the
-    reconstructed stretch gave the twin a 6.0 A spike against 3.4 A within it (true peak demand
-    2.7 A), and a saturation limit relative to it could not come down to the true one."""
+    training passes while the vehicle is over the reconstructed rail (where the twin is compared).
+    Not over the whole run: the end of the reconstructed stretch gave the twin a 6.0 A spike against
+    3.4 A within it (true peak demand 2.7 A), and a saturation limit relative to it could not come
+    down to the true one."""
     from ..irregularity import vehicle_over_valid
     from ..model import simulate
     peak = {"both": 0.0, "upper": 0.0}

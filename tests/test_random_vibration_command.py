@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import matplotlib.image
 import numpy as np
@@ -78,3 +80,16 @@ def test_unknown_solver_key_is_one_line(tmp_path, capsys):
     assert main(["random-vibration", str(p), "--out", str(tmp_path / "o"), "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "solver.couplng" in err[0]
+
+
+def test_paper_rows_of_the_bench_read_the_summary(quick_run):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import bench_paper001 as bp
+    doc = json.loads((quick_run / "random_vibration.json").read_text())
+    rs = bp.rows(doc)
+    assert rs[0]["within_2x"]                                   # car 2's times: 2.39 / 13.05 s
+    by = {r["quantity"]: r for r in rs}
+    r = by["girder midpoint vertical, max mean"]
+    assert r["ours"] == doc["summary"]["girder_mid_acc_z"]["max_abs_mean"] and r["paper"] == 0.09
+    assert r["ratio"] == pytest.approx(r["ours"] / 0.09) and r["within_2x"] == (0.5 <= r["ratio"] <= 2)
+    assert by["cabin vertical, max SD (implied)"]["paper"] == pytest.approx((0.32 - 0.16) / 3)

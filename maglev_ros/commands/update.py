@@ -1,10 +1,11 @@
-"""``maglev-ros update --ambient BAG --pass BAG [--pass BAG ...] --out params.json [--plot DIR]``.
+"""``maglev-ros update --ambient BAG --pass BAG [--pass BAG ...] [--heldout-pass BAG] --out params.json [--plot DIR]``.
 
 Hierarchical model updating (paper 000 Sec. 4-5, ``maglev_ros.updating.pipeline.update_from_bags``):
 guideway modes from the ambient recording (SSI-cov) -> guideway layer (E, rho, kb; the passes'
 /testline/guideway/displacement pins the scale of E and rho when present) -> magnet layer (kp, kv,
 ka) from the passes' magnet accelerations with the updated guideway. Writes the public
 ``maglev-params/1`` JSON; ``--plot DIR`` writes pareto.png, frequencies.png, magnet_accel.png.
+``--heldout-pass`` judges both twins on passes never fitted (printed, and in ``--details`` provenance).
 """
 from __future__ import annotations
 
@@ -23,6 +24,9 @@ def add_arguments(p) -> None:
     p.add_argument("--ambient", required=True, metavar="BAG", help="ambient-vibration recording (guideway modes)")
     p.add_argument("--pass", dest="passes", action="append", default=[], metavar="BAG",
                    help="vehicle pass recording (magnet layer; repeatable)")
+    p.add_argument("--heldout-pass", dest="heldout", action="append", default=[], metavar="BAG",
+                   help="vehicle pass never fitted: the nominal and updated twins' magnet accelerations are judged "
+                        "on it (repeatable; its rail is measured by every pass)")
     p.add_argument("--out", required=True, metavar="params.json", help="write the maglev-params/1 JSON here")
     p.add_argument("--plot", metavar="DIR", default=None, help="write Pareto / frequency+MAC / acceleration figures here")
     p.add_argument("--details", metavar="OUT.json", default=None,
@@ -48,7 +52,7 @@ def run(args) -> int:
     from maglev_ros.updating.pipeline import update_from_bags, update_layers
     from maglev_ros.health import report_lines
 
-    for b in [args.ambient, *args.passes]:
+    for b in [args.ambient, *args.passes, *args.heldout]:
         if not Path(b).exists():
             raise UserError(f"{b}: no such bag (expected a rosbag2 directory or .mcap/.db3 file)")
     if args.max_modes < 1:
@@ -70,7 +74,7 @@ def run(args) -> int:
     with executor_from_options(args.workers, args.scheduler) as executor, for_cli(args.quiet, "update") as progress:
         # the pipeline's messages go to stderr with the progress: stdout stays the result
         gl, ml = update_layers(args.samples, args.polish_evals, args.swarm, args.seed)
-        up = update_from_bags(args.ambient, args.passes, max_modes=args.max_modes, max_window_s=args.max_window_s,
+        up = update_from_bags(args.ambient, args.passes, heldout=args.heldout, max_modes=args.max_modes, max_window_s=args.max_window_s,
                               guideway_layer=gl, magnet_layer=ml, progress=progress,
                               executor=executor)
         for h in up.provenance["health"]:
@@ -99,6 +103,10 @@ def run(args) -> int:
         if doc["magnet_accel_nrmse"]:
             e = doc["magnet_accel_nrmse"]
             print(f"magnet acceleration NRMSE: nominal {e['nominal']:.3f} -> updated {e['updated']:.3f}")
+        h = up.provenance.get("heldout")
+        if h:
+            print(f"held-out magnet acceleration NRMSE ({', '.join(h['passes'])}): nominal {h['nominal']:.3f} "
+                  f"-> updated {h['updated']:.3f}")
         print(f"wrote {out}")
     if args.plot and not args.quiet:
         for p in plots:

@@ -207,3 +207,47 @@ def test_saturation_law_and_its_slope(i_lo):
         h = 1e-6
         fd = (_sat_current(c + h, i0, i_lo, i_hi) - _sat_current(c - h, i0, i_lo, i_hi)) / (2 * h)
         assert _sat_slope(c, i0, i_lo, i_hi) == pytest.approx(fd, abs=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# the twin's output as a channel recorded at a lower rate sees it: anti-aliased, not folded
+def test_anti_aliasing_keeps_the_usable_band_and_removes_what_would_fold_into_it():
+    """Against the analytic response: a tone at 0.6 x the channel's Nyquist keeps its amplitude
+    (within 0.3 %); one at 1.4 x (it would fold onto 0.6 x) is gone (< 0.2 %)."""
+    from maglev_ros.discrepancy.model import anti_aliased
+    fs, fs_ch = 2000.0, 500.0
+    t = np.arange(0, 4, 1 / fs)
+    mid = slice(1000, -1000)
+    for f, lo, hi in ((0.6 * fs_ch / 2, 0.997, 1.003), (1.4 * fs_ch / 2, 0.0, 0.002)):
+        y = anti_aliased(np.sin(2 * np.pi * f * t), t, fs_ch)
+        amp = np.sqrt(2) * np.std(y[mid])
+        assert lo <= amp <= hi, (f, amp)
+    x = np.sin(2 * np.pi * 10 * t)
+    assert anti_aliased(x, t, fs) is x                  # not finer than the channel: unchanged
+
+
+def test_a_channel_recorded_at_a_lower_rate_gets_the_twin_output_anti_aliased():
+    """The sample pass (2 kHz) with its guideway accelerometers decimated to 500 Hz: the twin's
+    band powers of a decimated channel equal those of the full-rate prediction in every band the
+    500 Hz channel uses (within 1 %); sampled every other step (folded) they were not."""
+    from dataclasses import replace
+    from pathlib import Path
+    from scipy import signal
+    from maglev_ros.discrepancy.features import band_powers, frame_grid, usable_bands
+    from maglev_ros.discrepancy.model import predict
+    from maglev_ros.discrepancy.recording import load_recording
+    rec = load_recording(Path(__file__).resolve().parents[1] / "bags" / "paper_pass")
+    name = next(n for n, c in rec.channels.items() if c.group == "guideway_accel")
+    ch = rec.channels[name]
+    q = int(round(ch.sample_rate_hz / 500.0))
+    v = signal.decimate(ch.values - ch.values.mean(), q, ftype="fir", zero_phase=True) + ch.values.mean()
+    low = replace(ch, values=v, time_s=ch.time_s[::q][:v.size], sample_rate_hz=ch.sample_rate_hz / q)
+    rec_low = replace(rec, channels={**rec.channels, name: low})
+    spec = base_spec(rec.metadata)
+    grid = frame_grid(rec)
+    full = band_powers(ch.time_s, predict(spec, rec)[name], ch.sample_rate_hz, grid)
+    got = band_powers(low.time_s, predict(spec, rec_low)[name], low.sample_rate_hz, grid)
+    use = usable_bands(grid, low.sample_rate_hz)
+    ok = np.all(np.isfinite(full) & np.isfinite(got), axis=1)
+    ratio = got[ok][:, use].sum(axis=0) / full[ok][:, use].sum(axis=0)
+    assert np.all(np.abs(ratio - 1) < 0.01), ratio

@@ -54,8 +54,8 @@ def test_attached_resonator_splits_the_mode_like_a_two_dof_system(mu, detune):
 # ---- resonator found from recordings -----------------------------------------------------------
 def _truth_pass(speed, attach, seed, n_el=24):
     """A pass over 2 spans from a truth twin (finer mesh, smaller step) with the generator's
-    attachment (or none), 1 kHz decimated to 500 Hz, white sensor noise."""
-    from discrepancy_cases import NOISE_STD, _attachment_modes, truth_signals
+    attachment (or none), 1 kHz anti-aliased and decimated to 500 Hz, white sensor noise."""
+    from discrepancy_cases import NOISE_STD, TUNE_VARIANT, _aa_decimate, _attachment_modes, truth_signals
     from maglev_ros.discrepancy.recording import TOPIC_GROUP
     from maglev_ros.twin.coupling import TwinStepper
     from maglev_ros.twin.design import line_spans, twin_config
@@ -85,7 +85,7 @@ def _truth_pass(speed, attach, seed, n_el=24):
     t = res.time_s[1::2]
     sig = {}
     for k, y in truth_signals(res, md["sensors"], st.vehicle.model).items():
-        y = y[1::2]
+        y = _aa_decimate(y, TUNE_VARIANT)         # the instrument's anti-alias filter, then 500 Hz
         sig[k] = (t, y + NOISE_STD[TOPIC_GROUP[md["sensors"][k]["topic"]]] * rng.standard_normal(y.size))
     pt = t[::5]
     pos = (pt, np.interp(pt, res.time_s, res.position_m), np.interp(pt, res.time_s, res.speed_mps))

@@ -74,9 +74,9 @@ def run(args) -> int:
     with executor_from_options(args.workers, args.scheduler) as executor, for_cli(args.quiet, "update") as progress:
         # the pipeline's messages go to stderr with the progress: stdout stays the result
         gl, ml = update_layers(args.samples, args.polish_evals, args.swarm, args.seed)
-        up = update_from_bags(args.ambient, args.passes, heldout=args.heldout, max_modes=args.max_modes, max_window_s=args.max_window_s,
-                              guideway_layer=gl, magnet_layer=ml, progress=progress,
-                              executor=executor)
+        up = update_from_bags(args.ambient, args.passes, heldout=args.heldout, max_modes=args.max_modes,
+                              max_window_s=args.max_window_s, guideway_layer=gl, magnet_layer=ml,
+                              progress=progress, executor=executor)
         for h in up.provenance["health"]:
             for line in report_lines(h):
                 print(f"maglev-ros update: {line}", file=sys.stderr)

@@ -319,8 +319,9 @@ def pass_evidences(recs: Sequence[PassRecording], config: TwinConfig, line=None,
     """Magnet-layer evidence of passes over one line with the irregularity for the twin ``config``
     (the guideway-updated twin; built once, see module docstring). With two or more passes their
     short waves are shared (:func:`~maglev_ros.irregularity.twin_input.shared_twin_inputs`: the
-    same rail seen by every pass's magnets: less gap noise in the twin's input). ``rail_only``: passes that only measure the rail for ``recs`` (a held-out
-    pass judged with the rail of every pass, its accelerations never fitted). Records the method
+    same rail seen by every pass's magnets: less gap noise in the twin's input). ``rail_only``:
+    passes that only measure the rail for ``recs`` (a held-out pass judged with the rail of every
+    pass, its accelerations never fitted). Records the method
     in each ``rec.info["irregularity"]``; a failure of ``profile_for_twin`` is logged and recorded
     there before that pass's inertial fallback is used."""
     from maglev_ros.irregularity.twin_input import shared_twin_inputs

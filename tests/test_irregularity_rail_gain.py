@@ -167,6 +167,7 @@ def _band_rms_on(x, y, lo_m, hi_m):
 def test_generated_pass_rail_error_per_band_is_what_the_stated_noise_predicts(generated_pass):
     ti, (xt, rt), psd = generated_pass
     x, r, g = ti.denoised_twin_input()
+    x, r = ti.position_m, np.interp(ti.position_m, x, r)     # read on the reconstruction's grid
     assert g is not None and ti.spacing_m == pytest.approx(V_MPS / FS_HZ, rel=0.02)
     # the noise the gain measured is the stated gap noise: one-sided PSD 2 sigma^2 / fs in time,
     # x speed in space (the accelerometer's double integral is far below it at these waves)
@@ -228,8 +229,8 @@ def test_passes_share_short_waves_only_when_they_measured_one_rail(other):
     else:
         b = _pass_input(rail, rng, shift_bins=0 if other == "same rail" else int(round(0.02 / DX)))
     ins, sh = shared_twin_inputs([a, b])
-    xa, ra = ins[0]
-    own = a.denoised_twin_input()[1]
+    xa, ra = a.position_m, np.interp(a.position_m, *ins[0])    # both read on the reconstruction's grid
+    own = np.interp(a.position_m, *a.denoised_twin_input()[:2])
     if other != "same rail":
         # the waves where the rail is strong are not shared (the passes disagree there): no change; where
         # the rail is below the noise the disagreement hides in it and the shared mean may cost a little

@@ -237,3 +237,11 @@ def test_passes_over_one_rail_share_its_short_waves_and_a_heldout_pass_is_judged
     h = up.provenance["heldout"]
     assert h["passes"] == ["p3"] and h["updated"] < h["nominal"]
     assert [r["bag"] for r in up.provenance["passes"]] == [str(bags["p1"])]      # fitted on p1 alone
+    # its plot: the held-out pass's measured accelerations and both twins', the NRMSE in the title
+    from maglev_ros.updating.plot import save_update_plots
+    paths = save_update_plots(up, tmp_path / "plots")
+    assert str(tmp_path / "plots" / "magnet_accel_heldout.png") in paths
+    assert (tmp_path / "plots" / "magnet_accel_heldout.png").stat().st_size > 10_000
+    t, meas, nom, upd, mags = up.heldout_series["p3"]
+    ok = np.isfinite(meas)
+    assert np.sqrt(np.mean((upd[ok] - meas[ok]) ** 2)) < np.sqrt(np.mean((nom[ok] - meas[ok]) ** 2))

@@ -505,7 +505,8 @@ class TwoLayerUpdate:
     nominal_config: TwinConfig
     updated_config: TwinConfig
     modal_result: Any = None
-    magnet_series: dict = field(default_factory=dict)     # label -> (t, measured, nominal, updated)
+    magnet_series: dict = field(default_factory=dict)     # label -> (t, measured, nominal, updated, magnets)
+    heldout_series: dict = field(default_factory=dict)    # the same for passes never fitted
 
     def to_dict(self) -> dict:
         return self.document
@@ -580,7 +581,7 @@ def _update_from_bags(ambient, passes, *, heldout, guideway_layer, magnet_layer,
     say(f"guideway layer: {gw.n_model_evaluations} model evaluations, {gw.wall_time_s:.1f} s")
     cfg_g = updated_config(cfg0 if not recs else twin_config_from_metadata(recs[0].md.raw), gw)
     mag = None
-    series = {}
+    series, held_series = {}, {}
     nrmse_doc = heldout_doc = None
     if recs:
         line = recs[0].md.raw["line"]
@@ -612,8 +613,10 @@ def _update_from_bags(ambient, passes, *, heldout, guideway_layer, magnet_layer,
         if held:
             # judged with the rail every pass measured (training and held-out), never fitted to
             hevs = pass_evidences(held, cfg_g, line, rail_only=recs, **ekw)
-            h_nom, _ = magnet_nrmse(cfg_nom, line, hevs, ml.dt_max_s)
-            h_up, _ = magnet_nrmse(cfg_up, line, hevs, ml.dt_max_s)
+            h_nom, hs_nom = magnet_nrmse(cfg_nom, line, hevs, ml.dt_max_s)
+            h_up, hs_up = magnet_nrmse(cfg_up, line, hevs, ml.dt_max_s)
+            for ev, a, b in zip(hevs, hs_nom, hs_up):
+                held_series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))
             heldout_doc = {"passes": [r.label for r in held], "nominal": h_nom, "updated": h_up,
                            "irregularity": [r.info["irregularity"].get("method") for r in held]}
             say(f"held-out magnet accelerations: NRMSE nominal {h_nom:.3f}, updated {h_up:.3f} "
@@ -634,4 +637,4 @@ def _update_from_bags(ambient, passes, *, heldout, guideway_layer, magnet_layer,
             "wall_time_s": time.perf_counter() - t_start,
             # the sensor-health check of every bag (maglev-params/1 itself has a fixed key set)
             "health": [amb_info["health"], *(r.info["health"] for r in recs)]}
-    return TwoLayerUpdate(gw, mag, doc, prov, cfg0, cfg_up, modal_res, series)
+    return TwoLayerUpdate(gw, mag, doc, prov, cfg0, cfg_up, modal_res, series, held_series)

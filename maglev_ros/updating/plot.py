@@ -17,7 +17,8 @@ def _plt():
 
 def save_update_plots(up, out_dir, batch=None) -> list[str]:
     """``up``: ``pipeline.TwoLayerUpdate``. Writes pareto.png, frequencies.png, magnet_accel.png
-    (the last only with a magnet layer; an earlier one is removed) into ``out_dir`` (created),
+    (only with a magnet layer) and magnet_accel_heldout.png (only with a held-out pass; an earlier
+    one of either is removed) into ``out_dir`` (created),
     all renamed into place together, or staged in ``batch`` (:class:`maglev_ros.outputs.Batch`);
     returns the paths."""
     from maglev_ros.outputs import batch_or_new
@@ -81,28 +82,37 @@ def _save(up, out: Path, batch) -> list[str]:
     _write(batch, p, fig, plt)
     paths.append(str(p))
 
-    if up.magnet_series:
-        label, (t, meas, nom, upd, mags) = next(iter(up.magnet_series.items()))
-        n = meas.shape[1]
-        fig, axes = plt.subplots(n, 1, figsize=(10, 2.1 * n + 0.6), sharex=True, squeeze=False)
-        e = doc["magnet_accel_nrmse"] or {}
-        for j, ax in enumerate(axes[:, 0]):
-            ax.plot(t, meas[:, j], "k-", lw=0.8, label="measured")
-            ax.plot(t, nom[:, j], "-", color="tab:orange", lw=0.8, label="nominal model")
-            ax.plot(t, upd[:, j], "--", color="tab:blue", lw=0.8, label="updated model")
-            ax.set_ylabel(f"magnet {mags[j]}\n[m/s^2]")
-            ax.grid(alpha=0.3)
-        axes[0, 0].legend(fontsize=8, ncol=3, loc="upper right")
-        axes[0, 0].set_title(f"{label}: magnet acceleration, NRMSE nominal {e.get('nominal', float('nan')):.3f}"
-                             f" -> updated {e.get('updated', float('nan')):.3f}")
-        axes[-1, 0].set_xlabel("time [s]")
-        fig.tight_layout()
-        p = out / "magnet_accel.png"
-        _write(batch, p, fig, plt)
+    e = doc["magnet_accel_nrmse"] or {}
+    h = (getattr(up, "provenance", None) or {}).get("heldout") or {}
+    for name, series, err, what in (("magnet_accel.png", up.magnet_series, e, "fitted"),
+                                    ("magnet_accel_heldout.png", getattr(up, "heldout_series", {}), h,
+                                     "held out, never fitted")):
+        p = out / name
+        if not series:
+            batch.remove(p)                         # not beside plots of an update it is not from
+            continue
+        _magnet_figure(plt, batch, p, series, err, what)
         paths.append(str(p))
-    else:
-        batch.remove(out / "magnet_accel.png")      # not beside plots of an update it is not from
     return paths
+
+
+def _magnet_figure(plt, batch, path: Path, series: dict, err: dict, what: str) -> None:
+    """Measured vs nominal vs updated magnet accelerations of the first pass in ``series``."""
+    label, (t, meas, nom, upd, mags) = next(iter(series.items()))
+    n = meas.shape[1]
+    fig, axes = plt.subplots(n, 1, figsize=(10, 2.1 * n + 0.6), sharex=True, squeeze=False)
+    for j, ax in enumerate(axes[:, 0]):
+        ax.plot(t, meas[:, j], "k-", lw=0.8, label="measured")
+        ax.plot(t, nom[:, j], "-", color="tab:orange", lw=0.8, label="nominal model")
+        ax.plot(t, upd[:, j], "--", color="tab:blue", lw=0.8, label="updated model")
+        ax.set_ylabel(f"magnet {mags[j]}\n[m/s^2]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, ncol=3, loc="upper right")
+    axes[0, 0].set_title(f"{label} ({what}): magnet acceleration, NRMSE nominal "
+                         f"{err.get('nominal', float('nan')):.3f} -> updated {err.get('updated', float('nan')):.3f}")
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.tight_layout()
+    _write(batch, path, fig, plt)
 
 
 def _write(batch, path: Path, fig, plt) -> None:

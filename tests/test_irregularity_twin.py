@@ -238,19 +238,19 @@ def test_user_errors():
         simulate_recorded_pass(c["cfg"], c["spans"], bad, None, c["accel"].time_s)
 
 
-def test_the_twin_reads_the_denoised_input_on_a_grid_fine_enough_for_its_shortest_wave():
-    """A wave of 4 grid steps (the reconstruction's shortest) sampled, tapered to 0 at both ends: read
-    by the twin (linear interpolation, central-difference slope: coupling.Irregularity) from the
-    coarse samples it loses ~10 % of its elevation and ~35 % of its slope against the analytic wave;
-    from ``fine_twin_input``'s grid within 1.5 % and 3 %."""
+def test_the_twin_reads_the_denoised_input_on_a_grid_no_coarser_than_its_step():
+    """A wave of 4.5 grid steps sampled, tapered to 0 at both ends, the twin travelling a quarter
+    step per time step: read by the twin (linear interpolation, central-difference slope:
+    coupling.Irregularity) from the coarse samples it loses over a quarter of its slope against the
+    analytic wave; from ``fine_twin_input``'s grid (the twin's travel per step) within 1.5 % and 3 %."""
     from maglev_ros.irregularity.twin_input import fine_twin_input
     from maglev_ros.twin.coupling import Irregularity
-    dx, lam = 0.01, 0.045                                # a 4.5-step wave (just inside a 4-step band)
+    dx, lam = 0.01, 0.045
     x = np.arange(4000) * dx
     env = np.sin(np.pi * x / x[-1]) ** 2                 # slow taper: the wave stays band-limited
     r = 1e-4 * env * np.sin(2 * np.pi * x / lam)
-    xf, rf = fine_twin_input(x, r, 4 * dx)
-    assert xf[1] - xf[0] <= 4 * dx / 16 + 1e-12 and xf[0] == x[0]
+    xf, rf = fine_twin_input(x, r, dx / 4)
+    assert xf[1] - xf[0] == pytest.approx(dx / 4) and xf[0] == x[0]
     q = np.linspace(10.0, 30.0, 20001)                   # the middle, where the envelope is ~1
     true_r = 1e-4 * np.interp(q, x, env) * np.sin(2 * np.pi * q / lam)
     true_s = 1e-4 * np.interp(q, x, env) * (2 * np.pi / lam) * np.cos(2 * np.pi * q / lam)
@@ -262,4 +262,5 @@ def test_the_twin_reads_the_denoised_input_on_a_grid_fine_enough_for_its_shortes
     assert amp(coarse.slope(q)) < 0.75 * amp(true_s)     # what the coarse grid did
     assert amp(fine.elevation(q)) == pytest.approx(amp(true_r), rel=0.015)
     assert amp(fine.slope(q)) == pytest.approx(amp(true_s), rel=0.03)
-    assert np.array_equal(fine_twin_input(x, r, 16 * dx)[0], x)      # fine enough already: unchanged
+    for step in (dx, 2 * dx, 0.0):                        # the grid is the step or finer, or no step known
+        assert np.array_equal(fine_twin_input(x, r, step)[0], x)

@@ -23,9 +23,9 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    2 cm with one. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
    a foreign simulator's rail still had its stator-pack waves; the twin's magnet misfit there grew
    from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``.
-   The twin reads its input by linear interpolation and a central-difference slope, which at 4 grid
-   steps per wave lose a third of the shortest wave's slope; the denoised input is therefore handed
-   over resampled (band-limited, FFT) to 16 points per shortest wave (:func:`fine_twin_input`). Because the reconstruction uses the same point-sensor convention
+   The twin samples its input once per step by linear interpolation: the denoised input is handed
+   over resampled (band-limited, FFT) to a grid no coarser than the twin's travel per step
+   (:func:`fine_twin_input`; a 500 Hz recording's grid is two steps of the 1 ms twin). Because the reconstruction uses the same point-sensor convention
    as the twin, the result is the *effective* irregularity the twin needs (as is the geometry
    product of :class:`InertialProfiler`, also point sensors by default, on its coarser grid).
    The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
@@ -108,6 +108,7 @@ class TwinIrregularity:
     loaded_minus_unloaded_rms_m: float
     result: IrregularityResult             # the last (unloaded) profiler result
     warnings: tuple[DataWarning, ...] = field(default_factory=tuple)
+    twin_step_m: float = 0.0               # the twin's travel per step at the top speed (0: not known)
 
     def as_twin_input(self) -> tuple[np.ndarray, np.ndarray]:
         """(x, r) on the reconstruction's grid, not denoised: the raw mean's short waves carry the
@@ -118,10 +119,7 @@ class TwinIrregularity:
     def denoised_twin_input(self):
         """:meth:`_denoised` on the grid the twin reads accurately (:func:`fine_twin_input`)."""
         x, r, g = self._denoised()
-        return (*fine_twin_input(x, r, self._denoised_min_wavelength_m(g)), g)
-
-    def _denoised_min_wavelength_m(self, g) -> float:
-        return self.min_wavelength_m if g is not None else max(self.min_wavelength_m, 4 * DEFAULT_SPACING_M)
+        return (*fine_twin_input(x, r, self.twin_step_m), g)
 
     def _denoised(self):
         """(x, r, gain): the twin input with the Wiener gain of the spectra measured on this pass
@@ -422,7 +420,8 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
         band_speed_mps=cur.band_speed_mps, spacing_m=cur.spacing_m, filter_order=cur.filter_order,
         sensor_delay_s=tau, taper_m=float(taper_m), iterations=it if max_iterations else 0,
         converged=converged, change_history=tuple(history), deflection_rms_m=defl_rms,
-        loaded_minus_unloaded_rms_m=lmu, result=cur, warnings=tuple(uniq))
+        loaded_minus_unloaded_rms_m=lmu, result=cur, warnings=tuple(uniq),
+        twin_step_m=float(np.max(np.abs(_position_arrays(position)[2]))) * float(dt_max_s or config.numerics.dt_max_s))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -512,22 +511,21 @@ class SharedRail:
                 "gain": None if self.gain is None else self.gain.to_dict()}
 
 
-TWIN_POINTS_PER_WAVE = 16
-
-
-def fine_twin_input(x_m: np.ndarray, r_m: np.ndarray, min_wavelength_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(x, r) resampled band-limited (FFT) to a grid of at most ``min_wavelength_m`` / 16. The twin
-    reads its input by linear interpolation and a central-difference slope over two grid steps: at
-    4 steps per wave (the reconstruction's grid at the band's shortest wave) they lose ~10 % of the
-    elevation and 35 % of the slope of that wave, at 16 under 1 % and 3 % (a 500 Hz pass's truth-rail
-    twin fit 0.118 -> 0.094 held-out). r is band-limited at ``min_wavelength_m`` and tapered to 0 at
-    both ends, so the FFT's periodic extension adds nothing."""
+def fine_twin_input(x_m: np.ndarray, r_m: np.ndarray, twin_step_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x, r) resampled band-limited (FFT) to a grid no coarser than ``twin_step_m``, the twin's
+    travel per step at the top speed. The twin samples its input once per step, by linear
+    interpolation: on a grid coarser than its travel per step that flattens the short waves its step
+    would sample (a 500 Hz recording's grid is two steps of a 1 ms twin: the magnet bands' fit 0.105 ->
+    0.078, the whole truth twin's 0.118 -> 0.098 held-out). Not finer: the short waves beyond what the
+    twin's step integrates then only add error (a 1 kHz recording read at 16 points per shortest wave:
+    training fit 0.074 -> 0.080, held-out unchanged). r is band-limited and tapered to 0 at both ends,
+    so the FFT's periodic extension adds nothing. Unchanged with ``twin_step_m`` 0."""
     x = np.asarray(x_m, float)
     r = np.asarray(r_m, float)
-    if x.size < 8:
+    if x.size < 8 or not twin_step_m > 0:
         return x, r
     dx = float(x[1] - x[0])
-    u = int(math.ceil(TWIN_POINTS_PER_WAVE * dx / float(min_wavelength_m) - 1e-9))
+    u = int(math.ceil(dx / float(twin_step_m) - 1e-6))
     if u <= 1:
         return x, r
     return x[0] + np.arange(x.size * u) * (dx / u), signal.resample(r, x.size * u)
@@ -553,12 +551,11 @@ def shared_twin_inputs(tis: Sequence[TwinIrregularity]) -> tuple[list[tuple[np.n
     less than the error the wider mean removes (a shift in position, or a rail that changed, shows as
     a larger difference between the passes where the rail is strong). Elsewhere each pass keeps its own."""
     from .denoise import _smooth_relative, _welch_runs, apply_rail_gain, magnets_averaged, rail_gain
-    den = [ti._denoised() for ti in tis]
-    own = [d[:2] for d in den]
-    fine = [ti._denoised_min_wavelength_m(d[2]) for ti, d in zip(tis, den)]
+    own = [ti._denoised()[:2] for ti in tis]
+    steps = [ti.twin_step_m for ti in tis]
 
     def keep(reason, **kw):
-        return [fine_twin_input(x, r, w) for (x, r), w in zip(own, fine)], SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit"))
+        return [fine_twin_input(x, r, st) for (x, r), st in zip(own, steps)], SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit"))
     if len(tis) < 2:
         return keep("one pass")
     dx = tis[0].spacing_m
@@ -636,7 +633,7 @@ def shared_twin_inputs(tis: Sequence[TwinIrregularity]) -> tuple[list[tuple[np.n
         H = (1.0 - 1.0 / (1.0 + (kf * split) ** 8)) * np.interp(kf, k, shared_k.astype(float))
         out.append((x, r_own + np.fft.irfft(np.fft.rfft(diff, nfft) * H, nfft)[:diff.size]))
     lam = 1.0 / k[shared_k]
-    out = [fine_twin_input(x, r, w) for (x, r), w in zip(out, fine)]
+    out = [fine_twin_input(x, r, st) for (x, r), st in zip(out, steps)]
     return out, SharedRail(True, f"one rail: the passes differ by their noise only at {lam.min():.3g}-{lam.max():.3g} m "
                                  f"({shared_k.sum()} of {short.sum()} wavenumbers shorter than the split)",
                            len(tis), len(rows), split, ratio, limit, g)

@@ -525,7 +525,8 @@ def fine_twin_input(x_m: np.ndarray, r_m: np.ndarray, twin_step_m: float) -> tup
     if x.size < 8 or not twin_step_m > 0:
         return x, r
     dx = float(x[1] - x[0])
-    u = int(math.ceil(dx / float(twin_step_m) - 1e-6))
+    # a grid within 5 % of the step is the step (a 999.9 Hz recording is not resampled 2x)
+    u = int(math.ceil(dx / float(twin_step_m) - 0.05))
     if u <= 1:
         return x, r
     return x[0] + np.arange(x.size * u) * (dx / u), signal.resample(r, x.size * u)

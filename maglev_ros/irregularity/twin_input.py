@@ -25,13 +25,14 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``.
    The twin samples its input once per step by linear interpolation: the denoised input is handed
    over resampled (band-limited, FFT) to a grid no coarser than the twin's travel per step
-   (:func:`fine_twin_input`; a 500 Hz recording's grid is two steps of the 1 ms twin). Because the reconstruction uses the same point-sensor convention
-   as the twin, the result is the *effective* irregularity the twin needs (as is the geometry
-   product of :class:`InertialProfiler`, also point sensors by default, on its coarser grid).
-   The long end ``max_wavelength_m = v_band / (2 f_c)`` comes
-   from the time high-pass (default ``highpass_hz`` 0.8 Hz: the double-integrated noise of a
-   0.02 m/s^2 accelerometer stays below ~10 um there; waves that long are followed by the
-   levitation control and barely accelerate the magnets -- the twin sees them as absent).
+   (:func:`fine_twin_input`; a 500 Hz recording's grid is two steps of the 1 ms twin).
+   Because the reconstruction uses the same point-sensor convention as the twin, the result is
+   the *effective* irregularity the twin needs (as is the geometry product of
+   :class:`InertialProfiler`, also point sensors by default, on its coarser grid). The long end
+   ``max_wavelength_m = v_band / (2 f_c)`` comes from the time high-pass (default ``highpass_hz``
+   0.8 Hz: the double-integrated noise of a 0.02 m/s^2 accelerometer stays below ~10 um there;
+   waves that long are followed by the levitation control and barely accelerate the magnets -- the
+   twin sees them as absent).
    The result states the band; outside it the profile is zero and ``valid`` is False.
 
    Speed (checked 15-60 m/s, tests/test_irregularity_speed.py): everything that is cut scales with
@@ -81,7 +82,8 @@ from maglev_ros.irregularity.integration import DataWarning
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
-           "twin_deflection", "twin_spacing_m", "fine_twin_input", "DEFAULT_SPACING_M", "SharedRail", "shared_twin_inputs"]
+           "twin_deflection", "twin_spacing_m", "fine_twin_input", "DEFAULT_SPACING_M", "SharedRail",
+           "shared_twin_inputs"]
 
 DEFAULT_SPACING_M = 0.02       # the twin input's grid with one magnet, and its coarsest
 
@@ -111,9 +113,8 @@ class TwinIrregularity:
     twin_step_m: float = 0.0               # the twin's travel per step at the top speed (0: not known)
 
     def as_twin_input(self) -> tuple[np.ndarray, np.ndarray]:
-        """(x, r) on the reconstruction's grid, not denoised: the raw mean's short waves carry the
-        gap noise, which the twin's linear reading of a 4-step wave partly hides; use
-        :meth:`denoised_twin_input`."""
+        """(x, r) on the reconstruction's grid, not denoised (the magnets' raw mean: its short waves
+        carry the gap noise); the twin is driven by :meth:`denoised_twin_input`."""
         return self.position_m, self.irregularity_m
 
     def denoised_twin_input(self):
@@ -421,7 +422,8 @@ def profile_for_twin(accel, gap, position, metadata_or_offsets, config, line=Non
         sensor_delay_s=tau, taper_m=float(taper_m), iterations=it if max_iterations else 0,
         converged=converged, change_history=tuple(history), deflection_rms_m=defl_rms,
         loaded_minus_unloaded_rms_m=lmu, result=cur, warnings=tuple(uniq),
-        twin_step_m=float(np.max(np.abs(_position_arrays(position)[2]))) * float(dt_max_s or config.numerics.dt_max_s))
+        twin_step_m=float(np.max(np.abs(_position_arrays(position)[2])))
+        * float(dt_max_s or config.numerics.dt_max_s))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -556,7 +558,8 @@ def shared_twin_inputs(tis: Sequence[TwinIrregularity]) -> tuple[list[tuple[np.n
     steps = [ti.twin_step_m for ti in tis]
 
     def keep(reason, **kw):
-        return [fine_twin_input(x, r, st) for (x, r), st in zip(own, steps)], SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit"))
+        return ([fine_twin_input(x, r, st) for (x, r), st in zip(own, steps)],
+                SharedRail(False, reason, len(tis), 0, kw.get("split"), kw.get("ratio"), kw.get("limit")))
     if len(tis) < 2:
         return keep("one pass")
     dx = tis[0].spacing_m

@@ -93,22 +93,31 @@ def run(tmp_path_factory):
                                      "-p", f"start_s:={START_S}", "-p", f"duration_s:={DURATION_S}", "-p", "rate:=0.0",
                                      "-p", "reliable:=true", "-p", "restamp:=false", "-p", "wait_subscribers:=1"],
                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        try:
-            expected = {t: len(r[0]) * len(r[2]) for t, r in ref.items()}
+        expected = {t: len(r[0]) * len(r[2]) for t, r in ref.items()}
 
-            def samples(t):
-                return sum(len(m.data) for m in got[t])
+        def samples(t):
+            return sum(len(m.data) for m in got[t])
+        failed = None
+        try:
             spin_until(ex, lambda: all(samples(t) >= n for t, n in expected.items()),
                        "every sample of the simulator in the adapter's blocks", timeout_s=300)
             spin_until(ex, lambda: sum(len(got[PREDICTED_PREFIX + g]) for g in GROUP_TOPICS) > 0
                        and "daq_adapter" in status and json.loads(status["daq_adapter"].detail or "{}").get("samples")
                        == sum(expected.values()), "the twin's predictions and the adapter's counts", timeout_s=600)
             assert sim.wait(timeout=120) == 0
+        except AssertionError as exc:
+            failed = exc
         finally:
             stop_processes(sim, adapter, twin)
             ex.shutdown()
             node.destroy_node()
     logs = {name: p.stdout.read() for name, p in (("sim", sim), ("adapter", adapter), ("twin", twin))}
+    if failed is not None:
+        # what arrived, the adapter's last counts and every node's last words: a stall under load says where
+        got_n = {t: f"{samples(t)}/{n}" for t, n in expected.items()}
+        counts = status["daq_adapter"].detail if "daq_adapter" in status else None
+        tails = "\n".join(f"--- {k} ---\n{v[-1500:]}" for k, v in logs.items())
+        pytest.fail(f"{failed}; samples {got_n}; adapter status {counts}\n{tails}")
     return ref, got, status, logs, meta
 
 

@@ -4,7 +4,8 @@ Hierarchical model updating (paper 000 Sec. 4-5, ``maglev_ros.updating.pipeline.
 guideway modes from the ambient recording (SSI-cov) -> guideway layer (E, rho, kb; the passes'
 /testline/guideway/displacement pins the scale of E and rho when present) -> magnet layer (kp, kv,
 ka) from the passes' magnet accelerations with the updated guideway. Writes the public
-``maglev-params/1`` JSON; ``--plot DIR`` writes pareto.png, frequencies.png, magnet_accel.png (and magnet_accel_heldout.png).
+``maglev-params/1`` JSON; ``--plot DIR`` writes pareto.png, frequencies.png, magnet_accel.png (and
+magnet_accel_heldout.png).
 ``--heldout-pass`` judges both twins on passes never fitted (printed, and in ``--details`` provenance).
 """
 from __future__ import annotations

@@ -308,9 +308,9 @@ def air_spring_force_law(terms) -> Callable[[np.ndarray, np.ndarray], np.ndarray
     return force
 
 
-# the air-spring force's splitting interval: first-order error ~ f x interval, 2 % of phase at the
-# 10 Hz top of the band a nonlinear air spring shows in (a fixed time, not per output sample: the
-# output rate follows the recording and the twin's step)
+# the air-spring force's splitting interval: its error is first order in the interval, here 2 % of
+# the period at the 10 Hz top of the band a nonlinear air spring shows in (a fixed time, not per
+# output sample: the output rate follows the recording and the twin's step)
 AIR_SPRING_SPLIT_S = 2e-3
 
 # simulations by (physics spec, recording, rate), least recently used dropped first: an entry is

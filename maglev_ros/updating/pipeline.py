@@ -546,6 +546,11 @@ def update_from_bags(ambient: str | Path, passes: Sequence[str | Path] = (), *,
                                  progress=progress, executor=executor)
 
 
+def _plot_series(evs: Sequence[PassEvidence], s_nom, s_up) -> dict:
+    """label -> (t, measured, nominal, updated, magnets) of each pass, from :func:`magnet_nrmse`'s series."""
+    return {ev.label: (a[0], a[1], a[2], b[2], list(ev.magnets)) for ev, a, b in zip(evs, s_nom, s_up)}
+
+
 def _update_from_bags(ambient, passes, *, heldout, guideway_layer, magnet_layer, magnet_fs_hz, max_window_s, max_modes,
                       use_twin_input, highpass_hz, log, progress, executor) -> TwoLayerUpdate:
     from maglev_ros.bag_memory import same_source, source_name
@@ -608,15 +613,13 @@ def _update_from_bags(ambient, passes, *, heldout, guideway_layer, magnet_layer,
         e_up, s_up = magnet_nrmse(cfg_up, line, evs, ml.dt_max_s)
         progress.advance(note="updated")
         nrmse_doc = {"nominal": e_nom, "updated": e_up}
-        for ev, a, b in zip(evs, s_nom, s_up):
-            series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))
+        series = _plot_series(evs, s_nom, s_up)
         if held:
             # judged with the rail every pass measured (training and held-out), never fitted to
             hevs = pass_evidences(held, cfg_g, line, rail_only=recs, **ekw)
             h_nom, hs_nom = magnet_nrmse(cfg_nom, line, hevs, ml.dt_max_s)
             h_up, hs_up = magnet_nrmse(cfg_up, line, hevs, ml.dt_max_s)
-            for ev, a, b in zip(hevs, hs_nom, hs_up):
-                held_series[ev.label] = (a[0], a[1], a[2], b[2], list(ev.magnets))
+            held_series = _plot_series(hevs, hs_nom, hs_up)
             heldout_doc = {"passes": [r.label for r in held], "nominal": h_nom, "updated": h_up,
                            "irregularity": [r.info["irregularity"].get("method") for r in held]}
             say(f"held-out magnet accelerations: NRMSE nominal {h_nom:.3f}, updated {h_up:.3f} "

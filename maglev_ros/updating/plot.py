@@ -83,10 +83,9 @@ def _save(up, out: Path, batch) -> list[str]:
     paths.append(str(p))
 
     e = doc["magnet_accel_nrmse"] or {}
-    h = (getattr(up, "provenance", None) or {}).get("heldout") or {}
+    h = up.provenance.get("heldout") or {}
     for name, series, err, what in (("magnet_accel.png", up.magnet_series, e, "fitted"),
-                                    ("magnet_accel_heldout.png", getattr(up, "heldout_series", {}), h,
-                                     "held out, never fitted")):
+                                    ("magnet_accel_heldout.png", up.heldout_series, h, "held out, never fitted")):
         p = out / name
         if not series:
             batch.remove(p)                         # not beside plots of an update it is not from

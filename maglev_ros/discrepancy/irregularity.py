@@ -15,7 +15,8 @@ Choices (documented because the method depends on them):
   same input the calibrated twin had.
 - Magnet <-> channel pairs come from the metadata (``magnet_channel_pairs``), never from channel
   order; the sensor delay is the stated acquisition delay of the vehicle accel topic minus that of
-  the position topic (docs/contract-extensions.md).
+  the position topic (docs/contract-extensions.md), else the one the passes measure
+  (:func:`measure_sensor_delay`: their rails shift against each other by speed difference x delay).
 - Vehicle channels are compared only while the whole vehicle is over the valid stretch (past the
   tapers + ``margin_m``); outside it the twin input is zero and the comparison would be meaningless.
 """
@@ -50,6 +51,42 @@ def sensor_delay_s(metadata) -> float:
     """Delay of the vehicle sensor samples relative to the position samples [s] (>= 0)."""
     d = metadata.acquisition_delay_s(TOPIC_ACCEL) - metadata.acquisition_delay_s(TOPIC_POS)
     return max(0.0, float(d))
+
+
+def states_sensor_delay(metadata) -> bool:
+    """True when the metadata states an acquisition delay of the vehicle accel or position topic."""
+    from maglev_ros.irregularity.sensor_delay import stated_sensor_delay_s
+    return stated_sensor_delay_s(metadata) is not None
+
+
+def pass_sensor_delay_s(rec: Recording) -> float:
+    """The delay the twin runs behind a pass's stamps: the stated one, else the one measured between
+    passes (``rec.sensor_delay_s``, set by :func:`measure_sensor_delay`'s caller)."""
+    from maglev_ros.contract import metadata_from_dict
+    from maglev_ros.irregularity.sensor_delay import stated_sensor_delay_s
+    stated = stated_sensor_delay_s(metadata_from_dict(dict(rec.metadata), rec.source))
+    return stated if stated is not None else max(0.0, float(rec.sensor_delay_s))
+
+
+def measure_sensor_delay(recs: Sequence[Recording], highpass_hz: float | None = 0.8):
+    """Delay of the vehicle sensors behind the position, from the passes' rails
+    (:mod:`maglev_ros.irregularity.sensor_delay`); a ``SensorDelayEstimate``."""
+    from maglev_ros.contract import metadata_from_dict
+    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile
+    from maglev_ros.irregularity.twin_input import twin_spacing_m
+    data = [(r, _vehicle_data(r)) for r in recs]
+    data = [(r, d) for r, d in data if d is not None and d[1]]
+    profiles = []
+    if len(data) >= 2:
+        spacing = min(twin_spacing_m(d[0], d[2], len(d[1])) for _, d in data)
+        for r, (acc, pairs, pos) in data:
+            try:
+                profiles.append(pass_profile(acc, _cd(r, "gap"), pos, metadata_from_dict(dict(r.metadata), r.source),
+                                             highpass_hz=highpass_hz or 0.8, spacing_m=spacing, channel_pairs=pairs,
+                                             source=r.source))
+            except (UserError, ValueError):
+                continue            # a pass the profiler cannot read has no rail to compare
+    return SensorDelayEstimator()(profiles)
 
 
 def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float | None = 0.8, spacing_m: float | None = None,
@@ -148,7 +185,7 @@ def _reconstruct(rec: Recording, spec, say, *, highpass_hz, spacing_m, max_itera
         return None
     gap = _cd(rec, "gap")
     md = metadata_from_dict(dict(rec.metadata), rec.source)
-    tau = sensor_delay_s(md)
+    tau = pass_sensor_delay_s(rec)
     try:
         ti = profile_for_twin(acc, gap, pos, md, spec.effective_config(), spec.effective_spans(),
                               highpass_hz=highpass_hz, spacing_m=spacing_m, channel_pairs=pairs,

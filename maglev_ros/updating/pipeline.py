@@ -328,6 +328,8 @@ def pass_evidences(recs: Sequence[PassRecording], config: TwinConfig, line=None,
     say = log or (lambda s: None)
     line = recs[0].md.raw["line"] if line is None else line
     kw = dict(highpass_hz=highpass_hz, profile_spacing_m=profile_spacing_m, say=say)
+    if use_twin_input:
+        _measure_sensor_delay([*recs, *rail_only], highpass_hz, say)
     tis = [_twin_input(r, config, line, **kw) if use_twin_input else (None, "use_twin_input=False") for r in recs]
     extra = [_twin_input(r, config, line, **kw)[0] for r in rail_only] if use_twin_input else []
     got = [ti for ti, _ in tis if ti is not None] + [ti for ti in extra if ti is not None]
@@ -353,11 +355,39 @@ def pass_evidences(recs: Sequence[PassRecording], config: TwinConfig, line=None,
     return out
 
 
+def _measure_sensor_delay(recs: Sequence[PassRecording], highpass_hz: float, say) -> None:
+    """With no delay stated, the delay of the vehicle sensors behind the position that two or more
+    passes at different speeds measure (:mod:`maglev_ros.irregularity.sensor_delay`), into each
+    ``rec.info["sensor_delay"]`` (and ``"sensor_delay_s"`` when applicable)."""
+    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile, stated_sensor_delay_s
+    from maglev_ros.irregularity.twin_input import twin_spacing_m
+    if len(recs) < 2 or any(stated_sensor_delay_s(r.md) is not None for r in recs):
+        return
+    spacing = min(twin_spacing_m(r.accel, r.position, len(r.magnets)) for r in recs)
+    profiles = []
+    for r in recs:
+        try:
+            profiles.append(pass_profile(r.accel, r.gap, r.position, r.md, highpass_hz=highpass_hz, spacing_m=spacing,
+                                         channel_pairs=r.info["channel_pairs"], source=r.label))
+        except (UserError, ValueError):
+            continue            # a pass the profiler cannot read has no rail to compare
+    est = SensorDelayEstimator()(profiles)
+    for r in recs:
+        r.info["sensor_delay"] = {**est.to_dict(), "applied": est.applicable}
+        if est.applicable:
+            r.info["sensor_delay_s"] = float(est.delay_s)
+    if est.applicable:
+        say(f"passes: vehicle sensors {est.delay_s * 1e3:.2f} ms behind the position (measured between the "
+            "passes, none stated)")
+
+
 def _signals(rec: PassRecording):
-    acc, pos = rec.accel, rec.position
+    from maglev_ros.irregularity.sensor_delay import stated_sensor_delay_s
+    acc = rec.accel
     t = np.asarray(acc.time_s, float)
     a = np.asarray(acc.data, float)[:, [acc.channels.index(rec.info["channel_pairs"][m][0]) for m in rec.magnets]]
-    tau = max(0.0, rec.md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL) - rec.md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
+    stated = stated_sensor_delay_s(rec.md)
+    tau = stated if stated is not None else float(rec.info.get("sensor_delay_s", 0.0))
     return t, a, tau
 
 

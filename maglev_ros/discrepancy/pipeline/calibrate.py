@@ -1,6 +1,8 @@
 """Stage 1, calibrate: what the recordings measure directly, then the base twin fitted to them.
 
-Order: the passes sorted (the fastest trains, the others are held out); the girder damping measured
+Order: the passes sorted (the fastest trains, the others are held out); the delay of the vehicle
+sensors behind the position measured between passes at different speeds when the metadata does not
+state it (:func:`..irregularity.measure_sensor_delay`; applied when significant); the girder damping measured
 on the ambient recording's modes (:mod:`..damping`) set before anything is fitted (a fitted E or kb
 cannot make up for it); each pass's rail reconstructed with the nominal twin, E, kb, kp, kv
 calibrated on the training pass, the rail rebuilt ONCE with the calibrated twin and the calibration
@@ -11,7 +13,7 @@ held-out passes worse: a local fault in the training pass can drag the global pa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -21,7 +23,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..irregularity import with_twin_irregularities
+from ..irregularity import measure_sensor_delay, states_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
 
@@ -89,6 +91,7 @@ class Calibration:
     fit_nrmse: float                   # whole-recording fit of the calibrated twin (all passes)
     fit_per_channel: dict
     guard: "CalibrationGuard | None" = None   # held-out check against the nominal twin (None: one pass)
+    sensor_delay: dict | None = None   # the measured delay of the vehicle sensors (None: stated or one pass)
 
     @property
     def same_heldout(self) -> bool:
@@ -106,10 +109,14 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
     # excitation is then checked where it must extrapolate downwards (fitted on a slower pass a
     # saturation limit was unconstrained and over-saturated the fast held-out pass)
     passes = sorted(passes, key=lambda p: -mean_speed_mps(p))
+    passes, delay = _with_measured_delay(passes, config)
     nominal = base_spec(passes[0].metadata, config.n_elements).with_(dt_max_s=config.dt_max_s)
     damping = measure_damping(ambient, nominal)
     base0 = nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied else nominal
     prep = PassPreparer(config, list(passes), len(passes) == 1)
+    if delay is not None and delay["applied"]:
+        prep.notes.append(f"vehicle sensors {delay['delay_s'] * 1e3:.2f} ms behind the position channel (measured "
+                          "between the passes, none stated): the twin runs that much behind the stamps")
     if not prep.same_heldout:
         prep.notes.append(f"training pass: {passes[0].source} (the fastest, {mean_speed_mps(passes[0]):.1f} m/s); "
                           f"held out: {', '.join(p.source for p in passes[1:])}")
@@ -132,7 +139,21 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
                               "the nominal twin is kept")
             base, data = fit_base(base0, data0.rd_train, max_nfev=1), data0   # one evaluation: its Jacobian
     nr, pc = fit_report(base.spec, data.rd_all)
-    return Calibration(nominal, base0, base, damping, data, prep, nr, pc, guard)
+    return Calibration(nominal, base0, base, damping, data, prep, nr, pc, guard, delay)
+
+
+def _with_measured_delay(passes: list[Recording], config) -> tuple[list[Recording], dict | None]:
+    """The passes with the delay their rails measure (when significant, positive and none is stated)."""
+    from maglev_ros.contract import metadata_from_dict
+    if len(passes) < 2 or not config.irregularity:
+        return passes, None
+    if any(states_sensor_delay(metadata_from_dict(dict(p.metadata), p.source)) for p in passes):
+        return passes, None
+    est = measure_sensor_delay(passes, config.irregularity_highpass_hz)
+    out = {**est.to_dict(), "applied": bool(est.applicable)}
+    if est.applicable:
+        passes = [replace(p, sensor_delay_s=float(est.delay_s)) for p in passes]
+    return passes, out
 
 
 def _guard(base0: ModelSpec, data0: PassSet, base: BaseFit, data: PassSet) -> CalibrationGuard:

@@ -170,6 +170,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
                         "fit_per_group": per_group(pc_before, {n: c.group for rd in rd_all
                                                                 for n, c in rd.rec.channels.items()}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
+                        **({"sensor_delay": cal.sensor_delay} if cal.sensor_delay else {}),
                         **({"mode_pattern": loc.mode_pattern.to_dict()} if loc.mode_pattern else {}),
                         **({"with_found_physics": recal.to_dict()} if recal is not None else {})},
     }

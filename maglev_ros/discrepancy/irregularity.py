@@ -83,7 +83,7 @@ def measure_sensor_delay(recs: Sequence[Recording], highpass_hz: float | None = 
             try:
                 profiles.append(pass_profile(acc, _cd(r, "gap"), pos, metadata_from_dict(dict(r.metadata), r.source),
                                              highpass_hz=highpass_hz or 0.8, spacing_m=spacing, channel_pairs=pairs,
-                                             source=r.source))
+                                             source=r.name))
             except (UserError, ValueError):
                 continue            # a pass the profiler cannot read has no rail to compare
     return SensorDelayEstimator()(profiles)

@@ -390,6 +390,15 @@ def _tried_rows(ex: dict) -> list[list]:
              "accepted" if v.accepted else "; ".join(v.reasons)] for hf, v, d in fits]
 
 
+def _delay_note(rep: dict) -> str:
+    """What the passes said about the delay of the vehicle sensors behind the position (when measured)."""
+    d = (rep.get("calibration") or {}).get("sensor_delay")
+    if not d:
+        return ""
+    what = "applied: the twin runs that much behind the stamps" if d.get("applied") else "not applied"
+    return f"<p>Sensor delay: {html.escape(d['reason'])} ({what}).</p>"
+
+
 def render(diagnosis) -> str:
     import matplotlib
     matplotlib.use("Agg")
@@ -411,6 +420,7 @@ def render(diagnosis) -> str:
         + "<h3>Recordings</h3>"
         + _table(_recordings_rows(ex), ["recording", "role", "duration [s]", "mean speed [m/s]", "channels"],
                  "recordings")
+        + _delay_note(rep)
         + "<p class='note'>Times in this report count from each recording's first sample.</p></section>")
     parts.append('<section id="glossary"><h2>How to read the numbers</h2><dl>'
                  + "".join(f"<dt>{html.escape(k)}</dt><dd>{html.escape(v)}</dd>" for k, v in GLOSSARY.items())

@@ -109,3 +109,22 @@ def test_update_reads_the_same_delay_from_the_pass_bags(tmp_path):
         assert r.info["sensor_delay_s"] == pytest.approx(ref.delay_s, abs=2 * ref.std_s)
         assert _signals(r)[2] == r.info["sensor_delay_s"]
     assert any("behind the position" in s for s in said)
+
+
+def test_a_stated_delay_wins_over_the_measured_one():
+    """With ``acquisition.<topic>.delay_s`` in the metadata nothing is measured (the diagnosis'
+    calibrate stage) and the twin runs the stated delay behind the stamps."""
+    from dataclasses import replace
+    import discrepancy_cases as dc
+    from maglev_ros.discrepancy.diagnose import DiagnoseConfig
+    from maglev_ros.discrepancy.irregularity import pass_sensor_delay_s
+    from maglev_ros.discrepancy.pipeline.calibrate import _with_measured_delay
+    case = dc.make_case("delay-stated", None, {"magnitude": 0.0}, seed=4244, speeds=(30.0, 60.0), split="blind",
+                        variant=dc.VARIANTS["blind"])
+    measured, d = _with_measured_delay(list(case.passes), DiagnoseConfig())
+    assert d["applied"] and all(p.sensor_delay_s == d["delay_s"] for p in measured)
+    acq = {"/testline/vehicle/accel": {"delay_s": 0.005}, "/testline/vehicle/position": {"delay_s": 0.001}}
+    stated = [replace(p, metadata={**p.metadata, "acquisition": acq}) for p in case.passes]
+    same, none = _with_measured_delay(stated, DiagnoseConfig())
+    assert none is None and same == stated
+    assert pass_sensor_delay_s(replace(stated[0], sensor_delay_s=0.003)) == pytest.approx(0.004)

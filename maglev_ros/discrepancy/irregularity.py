@@ -32,10 +32,6 @@ from maglev_ros.errors import UserError
 
 from .recording import Recording
 
-TOPIC_ACCEL = "/testline/vehicle/accel"
-TOPIC_GAP = "/testline/vehicle/gap"
-TOPIC_POS = "/testline/vehicle/position"
-
 
 def _cd(rec: Recording, group: str):
     names = [n for n, c in rec.channels.items() if c.group == group]
@@ -45,12 +41,6 @@ def _cd(rec: Recording, group: str):
     data = np.column_stack([np.interp(t, rec.channels[n].time_s, rec.channels[n].values) for n in names])
     return SimpleNamespace(time_s=t, data=data, channels=tuple(names),
                            sample_rate_hz=rec.channels[names[0]].sample_rate_hz)
-
-
-def sensor_delay_s(metadata) -> float:
-    """Delay of the vehicle sensor samples relative to the position samples [s] (>= 0)."""
-    d = metadata.acquisition_delay_s(TOPIC_ACCEL) - metadata.acquisition_delay_s(TOPIC_POS)
-    return max(0.0, float(d))
 
 
 def states_sensor_delay(metadata) -> bool:

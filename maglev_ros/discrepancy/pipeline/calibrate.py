@@ -91,7 +91,7 @@ class Calibration:
     fit_nrmse: float                   # whole-recording fit of the calibrated twin (all passes)
     fit_per_channel: dict
     guard: "CalibrationGuard | None" = None   # held-out check against the nominal twin (None: one pass)
-    sensor_delay: dict | None = None   # the measured delay of the vehicle sensors (None: stated or one pass)
+    sensor_delay: dict | None = None   # the measured delay of the vehicle sensors (None: stated, or no rail)
 
     @property
     def same_heldout(self) -> bool:
@@ -143,9 +143,10 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
 
 
 def _with_measured_delay(passes: list[Recording], config) -> tuple[list[Recording], dict | None]:
-    """The passes with the delay their rails measure (when significant, positive and none is stated)."""
+    """The passes with the delay their rails measure (when significant, positive and none is stated),
+    and what was found (None: no rail reconstructed, or the metadata states the delay)."""
     from maglev_ros.contract import metadata_from_dict
-    if len(passes) < 2 or not config.irregularity:
+    if not config.irregularity:
         return passes, None
     if any(states_sensor_delay(metadata_from_dict(dict(p.metadata), p.source)) for p in passes):
         return passes, None

@@ -46,6 +46,10 @@ def add_arguments(p) -> None:
     p.add_argument("--max-wavelength-m", type=float, default=None,
                    help="fix the longest wavelength instead [m]; slower stretches are dropped")
     p.add_argument("--confidence", type=float, default=0.90, help="PSD confidence level")
+    p.add_argument("--reference-pass", default=None, metavar="BAG",
+                   help="another pass over the same line at a different speed: the delay of the vehicle "
+                        "sensors behind the position is measured between the two passes' rails and applied "
+                        "when significant and the metadata states none (both bags are read whole for it)")
 
 
 def _check_units(cd, topic, want, channels):
@@ -78,10 +82,11 @@ def read_inputs_checked(path: str):
             **_check_inputs(path, md, accel, gap, pos)}, health
 
 
-def open_inputs(r, path: str, window_s: float | None = None):
+def open_inputs(r, path: str, window_s: float | None = None, sensor_delay_s: float = 0.0):
     """(the inputs of :func:`read_inputs` for the open bag ``r``, with the accelerations and gaps
     left in the bag: ``source`` reads them window by window
-    (:func:`maglev_ros.irregularity.streamed.profile_streamed`); the sensor-health report)."""
+    (:func:`maglev_ros.irregularity.streamed.profile_streamed`); the sensor-health report).
+    ``sensor_delay_s``: a measured delay of the accelerations and gaps added to the stated ones."""
     from maglev_ros.bag_windows import read_checked_windows
     from maglev_ros.contract import (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_GAP,
                                      TOPIC_VEHICLE_POSITION)
@@ -92,8 +97,8 @@ def open_inputs(r, path: str, window_s: float | None = None):
                                         [TOPIC_VEHICLE_POSITION], sensor_map=True)
     accel, gap = read[TOPIC_VEHICLE_ACCEL], read[TOPIC_VEHICLE_GAP]
     pos = read[TOPIC_VEHICLE_POSITION].delayed_by(md.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
-    src = VehicleTopics(r, accel, gap, md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL),
-                        md.acquisition_delay_s(TOPIC_VEHICLE_GAP), pos, window_s)
+    src = VehicleTopics(r, accel, gap, md.acquisition_delay_s(TOPIC_VEHICLE_ACCEL) + sensor_delay_s,
+                        md.acquisition_delay_s(TOPIC_VEHICLE_GAP) + sensor_delay_s, pos, window_s)
     return {"source": src, **_check_inputs(path, md, accel, gap, pos)}, health
 
 
@@ -250,6 +255,27 @@ def write_plot(path: str, res, spec, comp, batch=None) -> None:
         plt.close(fig)
 
 
+def measure_delay(bag: str, reference: str):
+    """The delay of the vehicle sensors behind the position measured between two passes over one
+    line (:mod:`maglev_ros.irregularity.sensor_delay`); None when either bag's metadata states one."""
+    from maglev_ros.bag_reader import BagReader
+    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile, stated_sensor_delay_s
+    from maglev_ros.irregularity.twin_input import twin_spacing_m
+    read = []
+    for path, opt in ((bag, "BAG"), (reference, "--reference-pass")):
+        if not Path(path).exists():
+            raise UserError(f"{opt} {path}: no such bag")
+        with BagReader(path) as r:
+            if stated_sensor_delay_s(r.metadata) is not None:
+                return None
+        read.append((path, read_inputs(path)))
+    spacing = min(twin_spacing_m(i["accel"], i["position"], max(2, len(i["channel_pairs"] or ()))) for _, i in read)
+    profiles = [pass_profile(i["accel"], i["gap"], i["position"], i["magnet_offsets_m"], spacing_m=spacing,
+                             channel_pairs=i["channel_pairs"], nominal_gap_m=i["nominal_gap_m"],
+                             source=Path(p).name) for p, i in read]
+    return SensorDelayEstimator()(profiles)
+
+
 def run(args) -> int:
     from maglev_ros.bag_reader import BagReader
     # the outputs can be written: checked before the analysis, not after
@@ -260,24 +286,33 @@ def run(args) -> int:
         outputs.check_figure(args.plot, "--plot")
     if not Path(args.bag).exists():
         raise UserError(f"{args.bag}: no such bag")
+    delay = measure_delay(args.bag, args.reference_pass) if args.reference_pass else None
+    tau = float(delay.delay_s) if delay is not None and delay.applicable else 0.0
     # accelerations and gaps stay in the bag, read window by window: memory stays bounded
     with BagReader(args.bag) as r:
-        inputs, health = open_inputs(r, args.bag)
+        inputs, health = open_inputs(r, args.bag, sensor_delay_s=tau)
         for line in health.lines():
             print(f"maglev-ros irregularity: {line}", file=sys.stderr)
         res, spec, comp, rms, notes = analyse(inputs, args)
+    if args.reference_pass:
+        notes.append("sensor delay: " + ("stated in the metadata, not measured" if delay is None else
+                                         delay.reason + (" (applied)" if tau else " (not applied)")))
     # CSV, JSON and plot replace the earlier set together, or none of them does
     with outputs.Batch() as batch:
         write_csv(args.out, res, rms, args.bag, batch)
         if args.json_out:
             batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag)
-                             | {"health": health.to_dict()}, indent=1, option="--json")
+                             | {"health": health.to_dict()}
+                             | ({"sensor_delay": {**delay.to_dict(), "applied": bool(tau)}} if delay else {}),
+                             indent=1, option="--json")
         if args.plot:
             write_plot(args.plot, res, spec, comp, batch)
     v = res.valid
     rms_all = float(np.sqrt(np.mean(res.irregularity_m[v] ** 2))) if v.any() else float("nan")
     print(f"irregularity: valid band {res.min_wavelength_m:.3g}-{res.max_wavelength_m:.3g} m at "
           f"band speed {res.band_speed_mps:.3g} m/s; time high-pass {_corner_text(res)}")
+    if args.reference_pass:
+        print(f"irregularity: {notes[-1]}")
     print(f"irregularity: {int(v.sum())} of {v.size} points valid, rms {rms_all * 1e3:.3g} mm, "
           f"{len(res.warnings)} warning(s); wrote {args.out}")
     return 0

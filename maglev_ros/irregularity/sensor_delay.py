@@ -98,11 +98,13 @@ def stated_sensor_delay_s(metadata) -> float | None:
 
 
 def pass_profile(accel, gap, position, metadata, *, highpass_hz: float = 0.8, spacing_m: float,
-                 channel_pairs: dict | None = None, source: str = "") -> PassProfile:
+                 channel_pairs: dict | None = None, nominal_gap_m: float | None = None,
+                 source: str = "") -> PassProfile:
     """The loaded profile of one pass with no delay applied (ChannelData-like inputs as for
-    :func:`~maglev_ros.irregularity.twin_input.profile_for_twin`, whose profiler settings it uses)."""
+    :func:`~maglev_ros.irregularity.twin_input.profile_for_twin`, whose profiler settings it uses;
+    ``metadata``: the contract metadata or the magnet offsets)."""
     from .twin_input import _resolve_vehicle
-    offs, g0, pairs = _resolve_vehicle(metadata, accel, gap, None, channel_pairs)
+    offs, g0, pairs = _resolve_vehicle(metadata, accel, gap, nominal_gap_m, channel_pairs)
     prof = InertialProfiler(highpass_hz=highpass_hz, spacing_m=spacing_m, magnet_length_m=0.0,
                             edge_s=1.5 / highpass_hz)
     res = prof.fit(accel, gap, position, magnet_offsets_m=offs, nominal_gap_m=g0, channel_pairs=pairs)

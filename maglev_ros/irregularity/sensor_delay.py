@@ -94,7 +94,8 @@ def stated_sensor_delay_s(metadata) -> float | None:
     topics = (TOPIC_VEHICLE_ACCEL, TOPIC_VEHICLE_POSITION)
     if not (isinstance(acq, dict) and any(isinstance(acq.get(t), dict) and "delay_s" in acq[t] for t in topics)):
         return None
-    return max(0.0, metadata.acquisition_delay_s(TOPIC_VEHICLE_ACCEL) - metadata.acquisition_delay_s(TOPIC_VEHICLE_POSITION))
+    d = metadata.acquisition_delay_s(TOPIC_VEHICLE_ACCEL) - metadata.acquisition_delay_s(TOPIC_VEHICLE_POSITION)
+    return max(0.0, d)
 
 
 def pass_profile(accel, gap, position, metadata, *, highpass_hz: float = 0.8, spacing_m: float,

@@ -259,8 +259,7 @@ def measure_delay(bag: str, reference: str):
     """The delay of the vehicle sensors behind the position measured between two passes over one
     line (:mod:`maglev_ros.irregularity.sensor_delay`); None when either bag's metadata states one."""
     from maglev_ros.bag_reader import BagReader
-    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile, stated_sensor_delay_s
-    from maglev_ros.irregularity.twin_input import twin_spacing_m
+    from maglev_ros.irregularity.sensor_delay import measure_sensor_delay, stated_sensor_delay_s
     read = []
     for path, opt in ((bag, "BAG"), (reference, "--reference-pass")):
         if not Path(path).exists():
@@ -269,11 +268,8 @@ def measure_delay(bag: str, reference: str):
             if stated_sensor_delay_s(r.metadata) is not None:
                 return None
         read.append((path, read_inputs(path)))
-    spacing = min(twin_spacing_m(i["accel"], i["position"], max(2, len(i["channel_pairs"] or ()))) for _, i in read)
-    profiles = [pass_profile(i["accel"], i["gap"], i["position"], i["magnet_offsets_m"], spacing_m=spacing,
-                             channel_pairs=i["channel_pairs"], nominal_gap_m=i["nominal_gap_m"],
-                             source=Path(p).name) for p, i in read]
-    return SensorDelayEstimator()(profiles)
+    return measure_sensor_delay([(i["accel"], i["gap"], i["position"], i["magnet_offsets_m"], i["channel_pairs"],
+                                  i["nominal_gap_m"], Path(p).name) for p, i in read])
 
 
 def run(args) -> int:
@@ -303,7 +299,7 @@ def run(args) -> int:
         if args.json_out:
             batch.write_json(args.json_out, summary_dict(res, spec, comp, rms, notes, args.bag)
                              | {"health": health.to_dict()}
-                             | ({"sensor_delay": {**delay.to_dict(), "applied": bool(tau)}} if delay else {}),
+                             | ({"sensor_delay": delay.to_dict()} if delay else {}),
                              indent=1, option="--json")
         if args.plot:
             write_plot(args.plot, res, spec, comp, batch)

@@ -43,12 +43,6 @@ def _cd(rec: Recording, group: str):
                            sample_rate_hz=rec.channels[names[0]].sample_rate_hz)
 
 
-def states_sensor_delay(metadata) -> bool:
-    """True when the metadata states an acquisition delay of the vehicle accel or position topic."""
-    from maglev_ros.irregularity.sensor_delay import stated_sensor_delay_s
-    return stated_sensor_delay_s(metadata) is not None
-
-
 def pass_sensor_delay_s(rec: Recording) -> float:
     """The delay the twin runs behind a pass's stamps: the stated one, else the one measured between
     passes (``rec.sensor_delay_s``, set by :func:`measure_sensor_delay`'s caller)."""
@@ -62,21 +56,15 @@ def measure_sensor_delay(recs: Sequence[Recording], highpass_hz: float | None = 
     """Delay of the vehicle sensors behind the position, from the passes' rails
     (:mod:`maglev_ros.irregularity.sensor_delay`); a ``SensorDelayEstimate``."""
     from maglev_ros.contract import metadata_from_dict
-    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile
-    from maglev_ros.irregularity.twin_input import twin_spacing_m
-    data = [(r, _vehicle_data(r)) for r in recs]
-    data = [(r, d) for r, d in data if d is not None and d[1]]
-    profiles = []
-    if len(data) >= 2:
-        spacing = min(twin_spacing_m(d[0], d[2], len(d[1])) for _, d in data)
-        for r, (acc, pairs, pos) in data:
-            try:
-                profiles.append(pass_profile(acc, _cd(r, "gap"), pos, metadata_from_dict(dict(r.metadata), r.source),
-                                             highpass_hz=highpass_hz or 0.8, spacing_m=spacing, channel_pairs=pairs,
-                                             source=r.name))
-            except (UserError, ValueError):
-                continue            # a pass the profiler cannot read has no rail to compare
-    return SensorDelayEstimator()(profiles)
+    from maglev_ros.irregularity import sensor_delay
+    passes = []
+    for r in recs:
+        d = _vehicle_data(r)
+        if d is not None and d[1]:
+            acc, pairs, pos = d
+            passes.append((acc, _cd(r, "gap"), pos, metadata_from_dict(dict(r.metadata), r.source), pairs, None,
+                           r.name))
+    return sensor_delay.measure_sensor_delay(passes, highpass_hz or 0.8)
 
 
 def with_twin_irregularity(rec: Recording, spec, *, highpass_hz: float | None = 0.8, spacing_m: float | None = None,

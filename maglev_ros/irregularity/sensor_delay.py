@@ -77,12 +77,13 @@ class SensorDelayEstimate:
 
     @property
     def applicable(self) -> bool:
-        """Significant and positive (the sensors behind the position), so the twin can run behind the stamps."""
+        """Significant and positive (the sensors behind the position), so the twin can run behind the
+        stamps; every caller applies such a delay (``applied`` in :meth:`to_dict`)."""
         return self.significant and self.delay_s > 0
 
     def to_dict(self) -> dict:
         return {"delay_s": self.delay_s, "std_s": self.std_s, "significant": self.significant,
-                "applicable": self.applicable, "reason": self.reason,
+                "applied": self.applicable, "reason": self.reason,
                 "pairs": [p.to_dict() for p in self.pairs]}
 
 
@@ -113,6 +114,26 @@ def pass_profile(accel, gap, position, metadata, *, highpass_hz: float = 0.8, sp
     moving = spd > prof.stop_speed_mps
     return PassProfile(source, float(np.mean(spd[moving])) if moving.any() else 0.0, res.position_m,
                        res.irregularity_m, float(res.min_wavelength_m))
+
+
+def measure_sensor_delay(passes: Sequence[tuple], highpass_hz: float = 0.8) -> SensorDelayEstimate:
+    """The delay measured between passes given as (accel, gap, position, metadata or magnet offsets,
+    channel pairs, nominal gap [m] or None, source) on one grid: the finest any of them resolves
+    (:func:`~maglev_ros.irregularity.twin_input.twin_spacing_m`). A pass the profiler cannot read is
+    left out (it has no rail to compare)."""
+    from maglev_ros.errors import UserError
+    from .twin_input import twin_spacing_m
+    if len(passes) < 2:
+        return SensorDelayEstimator()([])
+    spacing = min(twin_spacing_m(acc, pos, len(pairs or ())) for acc, _, pos, _, pairs, _, _ in passes)
+    profiles = []
+    for acc, gap, pos, md, pairs, g0, source in passes:
+        try:
+            profiles.append(pass_profile(acc, gap, pos, md, highpass_hz=highpass_hz, spacing_m=spacing,
+                                         channel_pairs=pairs, nominal_gap_m=g0, source=source))
+        except (UserError, ValueError):
+            continue
+    return SensorDelayEstimator()(profiles)
 
 
 class SensorDelayEstimator:

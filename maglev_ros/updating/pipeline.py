@@ -359,21 +359,13 @@ def _measure_sensor_delay(recs: Sequence[PassRecording], highpass_hz: float, say
     """With no delay stated, the delay of the vehicle sensors behind the position that two or more
     passes at different speeds measure (:mod:`maglev_ros.irregularity.sensor_delay`), into each
     ``rec.info["sensor_delay"]`` (and ``"sensor_delay_s"`` when applicable)."""
-    from maglev_ros.irregularity.sensor_delay import SensorDelayEstimator, pass_profile, stated_sensor_delay_s
-    from maglev_ros.irregularity.twin_input import twin_spacing_m
+    from maglev_ros.irregularity.sensor_delay import measure_sensor_delay, stated_sensor_delay_s
     if len(recs) < 2 or any(stated_sensor_delay_s(r.md) is not None for r in recs):
         return
-    spacing = min(twin_spacing_m(r.accel, r.position, len(r.magnets)) for r in recs)
-    profiles = []
+    est = measure_sensor_delay([(r.accel, r.gap, r.position, r.md, r.info["channel_pairs"], None, r.label)
+                                for r in recs], highpass_hz)
     for r in recs:
-        try:
-            profiles.append(pass_profile(r.accel, r.gap, r.position, r.md, highpass_hz=highpass_hz, spacing_m=spacing,
-                                         channel_pairs=r.info["channel_pairs"], source=r.label))
-        except (UserError, ValueError):
-            continue            # a pass the profiler cannot read has no rail to compare
-    est = SensorDelayEstimator()(profiles)
-    for r in recs:
-        r.info["sensor_delay"] = {**est.to_dict(), "applied": est.applicable}
+        r.info["sensor_delay"] = est.to_dict()
         if est.applicable:
             r.info["sensor_delay_s"] = float(est.delay_s)
     if est.applicable:

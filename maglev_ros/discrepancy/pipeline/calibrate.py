@@ -23,7 +23,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..irregularity import measure_sensor_delay, states_sensor_delay, with_twin_irregularities
+from ..irregularity import measure_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
 
@@ -146,12 +146,13 @@ def _with_measured_delay(passes: list[Recording], config) -> tuple[list[Recordin
     """The passes with the delay their rails measure (when significant, positive and none is stated),
     and what was found (None: no rail reconstructed, or the metadata states the delay)."""
     from maglev_ros.contract import metadata_from_dict
+    from maglev_ros.irregularity.sensor_delay import stated_sensor_delay_s
     if not config.irregularity:
         return passes, None
-    if any(states_sensor_delay(metadata_from_dict(dict(p.metadata), p.source)) for p in passes):
+    if any(stated_sensor_delay_s(metadata_from_dict(dict(p.metadata), p.source)) is not None for p in passes):
         return passes, None
     est = measure_sensor_delay(passes, config.irregularity_highpass_hz)
-    out = {**est.to_dict(), "applied": bool(est.applicable)}
+    out = est.to_dict()
     if est.applicable:
         passes = [replace(p, sensor_delay_s=float(est.delay_s)) for p in passes]
     return passes, out

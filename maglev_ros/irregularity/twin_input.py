@@ -17,10 +17,12 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    from the SHORT waves (at 25 km/h a 0.5 m wave is 14 Hz). So ``magnet_length_m`` is 0 here and
    the shortest wavelength is set by sampling and grid only:
    ``min_wavelength_m = max(4 * spacing_m, 4 * v_max / fs)``. The grid follows the data
-   (``spacing_m`` None): one sample step at the top speed, ``v_max / fs``, at most
-   ``DEFAULT_SPACING_M`` (2 cm), when two or more magnets measure (their difference measures the
-   noise that the twin input's gain then removes, :meth:`TwinIrregularity.denoised_twin_input`);
-   2 cm with one. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
+   (``spacing_m`` None): one sample step at the top speed, ``v_max / fs``, or the twin's travel per
+   step when that is finer, at most ``DEFAULT_SPACING_M`` (2 cm), when two or more magnets measure
+   (their difference measures the noise that the twin input's gain then removes,
+   :meth:`TwinIrregularity.denoised_twin_input`); 2 cm with one. Samples farther apart than the
+   grid (a slow-sampled or fast pass) are first interpolated band-limited to it (:func:`upsampled`),
+   so the band reaches the recording's Nyquist rather than 4 samples per wave. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
    a foreign simulator's rail still had its stator-pack waves; the twin's magnet misfit there grew
    from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``.
    The twin samples its input once per step by linear interpolation: the denoised input is handed

@@ -376,6 +376,9 @@ def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=No
     if hyp.effect == "ambient_excitation":
         return fit_ambient(base, hyp, rds)
     upper = stable_lag_limit(base.spec, hyp) if hyp.effect == "control_delay" else None
+    if upper is not None and not upper > hyp.lower[0]:
+        raise ValueError(f"the calibrated levitation is unstable with this form of delay already at "
+                         f"{max(upper / 0.98, 5e-4) * 1e3:.1f} ms (its gains leave no margin for it)")
     # levitation physics (control, magnetic force) is fitted where it acts, on the vehicle channels:
     # fitted on every channel, the guideway sensors' own model error pulled a delay along its ridge
     # with kv (a true 6 ms: fitted 4.3 ms with kv +62 %, guideway held-out NRMSE 0.13 -> 0.23,

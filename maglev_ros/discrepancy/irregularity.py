@@ -106,7 +106,8 @@ def with_twin_irregularities(recs: Sequence[Recording], spec, *, share: bool = T
         for r in recs:
             d = _vehicle_data(r)
             if d is not None and d[1]:
-                steps.append(twin_spacing_m(d[0], d[2], len(d[1]), spec.dt_max_s or spec.effective_config().numerics.dt_max_s))
+                dt_s = spec.dt_max_s or spec.effective_config().numerics.dt_max_s
+                steps.append(twin_spacing_m(d[0], d[2], len(d[1]), dt_s))
         spacing = min(steps) if steps else None
     got = [_reconstruct(r, spec, say, highpass_hz=highpass_hz, spacing_m=spacing, max_iterations=max_iterations,
                         **profile_kw) for r in recs]

@@ -22,9 +22,10 @@ irregularity r(x) that, fed to the coupled twin (``twin.coupling``), reproduces 
    (their difference measures the noise that the twin input's gain then removes,
    :meth:`TwinIrregularity.denoised_twin_input`); 2 cm with one. Samples farther apart than the
    grid (a slow-sampled or fast pass) are first interpolated band-limited to it (:func:`upsampled`),
-   so the band reaches the recording's Nyquist rather than 4 samples per wave. (A fixed 2 cm grid cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where
-   a foreign simulator's rail still had its stator-pack waves; the twin's magnet misfit there grew
-   from 0.06 at 18 Hz to 0.65 at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``.
+   so the band reaches the recording's Nyquist rather than 4 samples per wave. (A fixed 2 cm grid
+   cut the band at 8 cm: 86 Hz at 6.9 m/s, 52 Hz at 4.2 m/s, where a foreign simulator's rail
+   still had its stator-pack waves; the twin's magnet misfit there grew from 0.06 at 18 Hz to 0.65
+   at 88 Hz.) Override with ``spacing_m`` / ``min_wavelength_m``.
    The twin samples its input once per step by linear interpolation: the denoised input is handed
    over resampled (band-limited, FFT) to a grid no coarser than the twin's travel per step
    (:func:`fine_twin_input`; a 500 Hz recording's grid is two steps of the 1 ms twin).
@@ -80,7 +81,7 @@ import numpy as np
 from scipy import signal
 
 from maglev_ros.errors import UserError
-from maglev_ros.irregularity.integration import DataWarning
+from maglev_ros.irregularity.integration import DataWarning, _runs
 from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
@@ -353,22 +354,13 @@ def upsampled(cd, factor: int):
     n_up = (t.size - 1) * L + 1             # the last sample closes the record: nothing extrapolated
     out = np.full((n_up, d2.shape[1]), np.nan)
     for j in range(d2.shape[1]):
-        ok = np.isfinite(d2[:, j])
-        i = 0
-        while i < ok.size:
-            if not ok[i]:
-                i += 1
-                continue
-            i1 = i
-            while i1 < ok.size and ok[i1]:
-                i1 += 1
-            seg = d2[i:i1, j]
+        for i0, i1 in _runs(np.isfinite(d2[:, j])):
+            seg = d2[i0:i1, j]
             if seg.size >= 8:
                 up = signal.resample_poly(seg, L, 1, padtype="line")[:(seg.size - 1) * L + 1]
             else:
                 up = np.interp(np.arange((seg.size - 1) * L + 1) / L, np.arange(seg.size), seg)
-            out[i * L:i * L + up.size, j] = up
-            i = i1
+            out[i0 * L:i0 * L + up.size, j] = up
     t_up = np.interp(np.arange(n_up) / L, np.arange(t.size), t)
     fs = getattr(cd, "sample_rate_hz", None)
     return _cd(t_up, out if d.ndim > 1 else out[:, 0], cd.channels, None if fs is None else float(fs) * L)

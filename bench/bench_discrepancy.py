@@ -4,7 +4,8 @@ the partner's simulator recordings (``--partner``).
 Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|both] [--jobs 2] [--limit N]
        [--only EFFECT,...] [--json OUT]   (cases are written to OUT as they finish)
        .venv/bin/python bench/bench_discrepancy.py --partner [DIR] [--passes 1|2|both] [--cases ID,...]
-       [--jobs 2] [--json OUT]            (with --split too: our splits first, then the partner's cases)
+       [--partner-rate HZ] [--jobs 2] [--json OUT]   (with --split too: our splits first, then the partner's;
+                                          --partner-rate: the partner's channels resampled to HZ first)
        .venv/bin/python bench/bench_discrepancy.py --table OUT   (tables of a saved, even partial, run)
        .venv/bin/python bench/bench_discrepancy.py --table REPORTS_DIR --passes 1|2 [--partner DIR]
                                           (partner tables of a folder of <ID>.json diagnosis reports)
@@ -318,17 +319,40 @@ def _partner_cases(pdir: Path, cases: str = "", only: str = "", limit: int = 0) 
     return out[:limit] if limit else out
 
 
+def at_rate(rec, rate_hz: float | None):
+    """``rec`` with every channel sampled faster than ``rate_hz`` resampled to it as a decimating DAQ
+    would (scipy's polyphase resampler: a zero-phase FIR anti-alias filter, mean removed first), to
+    judge the diagnosis at another sampling rate on the same physics. None: unchanged."""
+    from dataclasses import replace
+    from fractions import Fraction
+
+    from scipy import signal
+    if not rate_hz:
+        return rec
+    chans = {}
+    for n, ch in rec.channels.items():
+        if ch.sample_rate_hz > rate_hz * 1.001:
+            q = Fraction(float(rate_hz) / ch.sample_rate_hz).limit_denominator(1000)
+            m0 = float(np.mean(ch.values))
+            v = signal.resample_poly(ch.values - m0, q.numerator, q.denominator) + m0
+            ch = replace(ch, values=v, time_s=ch.time_s[0] + np.arange(v.size) / float(rate_hz),
+                         sample_rate_hz=float(rate_hz))
+        chans[n] = ch
+    return replace(rec, channels=chans)
+
+
 def run_partner_one(args):
     """Diagnose one partner case as ``maglev-ros diagnose`` does: the ambient recording and the first
-    pass (calibrates), plus the second pass (held out) when ``n_passes`` is 2."""
-    case_dir, n_passes = args
+    pass (calibrates), plus the second pass (held out) when ``n_passes`` is 2; every channel resampled
+    to ``rate_hz`` first when given (:func:`at_rate`)."""
+    case_dir, n_passes, rate_hz = args
     from maglev_ros.discrepancy.diagnose import diagnose
     from maglev_ros.discrepancy.recording import load_recording
     c = Path(case_dir)
     t = time.time()
     try:
-        passes = [load_recording(c / "pass")] + ([load_recording(c / "pass2")] if n_passes == 2 else [])
-        ambient = load_recording(c / "ambient")
+        passes = [at_rate(load_recording(c / p), rate_hz) for p in ("pass", "pass2")[:n_passes]]
+        ambient = at_rate(load_recording(c / "ambient"), rate_hz)
         if ambient.kind != "ambient":
             raise ValueError(f"{c / 'ambient'}: run.kind {ambient.kind!r}, expected 'ambient'")
         rep, err = diagnose(passes, ambient).to_dict(), None
@@ -452,7 +476,7 @@ def run_partner(a, pdir: Path, out: dict) -> None:
     modes = (1, 2) if a.passes == "both" else (int(a.passes),)
     cases = _partner_cases(pdir, a.cases, a.only, a.limit)
     scorer = _partner_scorer(pdir)
-    jobs = [(str(c), m) for m in modes for c in cases]
+    jobs = [(str(c), m, a.partner_rate) for m in modes for c in cases]
     for m in modes:
         out[f"partner-{m}"] = {"dir": str(pdir), "passes": m, "cases": []}
     with ProcessPoolExecutor(a.jobs) as ex:
@@ -495,6 +519,9 @@ def main():
     ap.add_argument("--passes", default="both", choices=("1", "2", "both"),
                     help="partner cases: 1 = ambient + pass, 2 = ambient + pass + pass2, both (default)")
     ap.add_argument("--cases", default="", help="partner cases: comma-separated case ids (default: all)")
+    ap.add_argument("--partner-rate", type=float, default=None, metavar="HZ",
+                    help="partner cases: every faster channel resampled to HZ first (another DAQ rate, the same "
+                         "physics and truth)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated effects (clean, girder_attachment, ...)")

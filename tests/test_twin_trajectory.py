@@ -88,3 +88,21 @@ def test_the_live_tracker_estimates_the_newest_position_within_its_stated_error(
     assert 0.8 < np.std(z) < 1.25                      # the stated error is the real one
     assert np.mean(np.abs(z) < 3) > 0.98
     assert np.sqrt(np.mean(np.square(err))) < 0.5 * np.sqrt(np.mean(np.square(raw)))
+
+
+def test_absolute_stamps_reach_every_end_sample_and_end():
+    """On a recording's absolute time base (~1.7e9 s, float rounding ~1e-4 of a 1 kHz sample) the
+    stepper lands on every asked end sample: each end on the output grid advances it to exactly that
+    sample count (the exact arithmetic reference: k samples after t0), and drive() returns."""
+    t0 = 1718122400.0
+    t, xm, vm = _measured(seconds=2.0)
+    traj = MeasuredTrajectory.from_samples(t0 + t, xm, vm)
+    fs = 1000.0
+    st = TwinStepper(twin_config(), None, fs_out_hz=fs, start_position_m=float(xm[0]),
+                     start_speed_mps=float(vm[0]), t0_s=t0)
+    for k in range(1, 400, 7):
+        st.advance(t0 + k / fs, 5.0)
+        assert st._k == k * st.n_sub
+    res = drive(st, traj, t0 + 1.6840, block_s=0.25)
+    tt = np.concatenate([r.time_s for r in res])
+    assert round((tt[-1] - t0) * fs) == 1684 and np.all(np.diff(tt) > 0)

@@ -394,7 +394,9 @@ class TwinStepper:
     def advance(self, t_end_s: float, speed_mps: float | None = None) -> PassResult:
         """Advance to the last output sample at or before ``t_end_s``; returns those samples."""
         v_new = self.speed_mps if speed_mps is None else float(speed_mps)
-        k_out_end = int(math.floor((t_end_s - self.t0_s) * self.fs_out_hz + 1e-9))
+        # stamps are absolute (~1.7e9 s): their rounding is ~1e-4 of a 1 kHz sample, so an end on a
+        # sample must not floor to the one before it (drive() then waited for it forever)
+        k_out_end = int(math.floor((t_end_s - self.t0_s) * self.fs_out_hz + 1e-3))
         k_end = k_out_end * self.n_sub
         n_total = k_end - self._k
         if n_total <= 0:

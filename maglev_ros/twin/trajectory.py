@@ -114,10 +114,13 @@ def drive(stepper, trajectory: MeasuredTrajectory, t_end_s: float, block_s: floa
     parts = []
     while True:
         t_now = float(stepper.time_s)
-        k_out = math.floor((min(t_now + block_s, t_end_s) - stepper.t0_s) * fs + 1e-9)
+        k_out = math.floor((min(t_now + block_s, t_end_s) - stepper.t0_s) * fs + 1e-3)
         t_next = stepper.t0_s + k_out / fs
         if t_next <= t_now + 0.5 / fs:
             break
         parts.append(step(stepper, t_next, ramp_speed(stepper, t_next, float(trajectory.position_at(t_next)),
                                                       float(trajectory.speed_at(t_next)))))
+        if float(stepper.time_s) <= t_now:
+            # no progress (a target that rounds onto the current sample) must end, not loop forever
+            break
     return parts

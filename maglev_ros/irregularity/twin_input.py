@@ -82,7 +82,7 @@ from scipy import signal
 
 from maglev_ros.errors import UserError
 from maglev_ros.irregularity.integration import DataWarning, _runs
-from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, magnet_channel_pairs
+from maglev_ros.irregularity.profile import InertialProfiler, IrregularityResult, _rate, magnet_channel_pairs
 
 __all__ = ["TwinIrregularity", "profile_for_twin", "simulate_recorded_pass", "accel_nrmse",
            "twin_deflection", "twin_spacing_m", "fine_twin_input", "DEFAULT_SPACING_M", "SharedRail",
@@ -311,10 +311,6 @@ def _taper_weights(valid: np.ndarray, nt: int) -> np.ndarray:
     return w
 
 
-def _sample_rate_hz(cd) -> float:
-    return float(getattr(cd, "sample_rate_hz", None) or 1.0 / float(np.median(np.diff(np.asarray(cd.time_s, float)))))
-
-
 def twin_spacing_m(accel, position, n_magnets: int, twin_dt_s: float | None = None) -> float:
     """Grid of the twin input [m]: one sample step at the top speed when two or more magnets measure
     (the finest the data resolve; their noise is then measured and removed), or the twin's travel per
@@ -323,7 +319,7 @@ def twin_spacing_m(accel, position, n_magnets: int, twin_dt_s: float | None = No
     if n_magnets < 2:
         return DEFAULT_SPACING_M
     _, _, spd = _position_arrays(position)
-    step_s = 1.0 / _sample_rate_hz(accel)
+    step_s = 1.0 / _rate(accel)
     if twin_dt_s is not None and twin_dt_s > 0:
         step_s = min(step_s, float(twin_dt_s))
     v_top = float(np.max(np.abs(spd)))
@@ -334,7 +330,7 @@ def upsample_factor(accel, position, spacing_m: float) -> int:
     """How many times the vehicle channels are upsampled so that their samples at the top speed lie no
     farther apart than ``spacing_m`` (1: they already do; a grid within 5 % of the step is the step)."""
     _, _, spd = _position_arrays(position)
-    step_m = float(np.max(np.abs(spd))) / _sample_rate_hz(accel)
+    step_m = float(np.max(np.abs(spd))) / _rate(accel)
     return max(1, int(math.ceil(step_m / float(spacing_m) - 0.05))) if spacing_m > 0 else 1
 
 

@@ -179,6 +179,13 @@ def _sensor_list(sensors: Any) -> tuple[tuple[str, ...], np.ndarray]:
     return tuple(f"x{x:g}" for x in xs), xs
 
 
+def output_index(t_s: float, t0_s: float, fs_hz: float) -> int:
+    """Index of the last output sample at or before ``t_s`` on the grid t0_s + k / fs_hz. Stamps are
+    absolute (~1.7e9 s): their rounding is ~1e-4 of a 1 kHz sample, so a time on a sample must not
+    floor to the one before it (a caller waiting for that sample then looped forever)."""
+    return int(math.floor((t_s - t0_s) * fs_hz + 1e-3))
+
+
 class TwinStepper:
     """Incremental coupled simulation (for the online twin): ``advance(t_end_s, speed_mps)``.
 
@@ -394,9 +401,7 @@ class TwinStepper:
     def advance(self, t_end_s: float, speed_mps: float | None = None) -> PassResult:
         """Advance to the last output sample at or before ``t_end_s``; returns those samples."""
         v_new = self.speed_mps if speed_mps is None else float(speed_mps)
-        # stamps are absolute (~1.7e9 s): their rounding is ~1e-4 of a 1 kHz sample, so an end on a
-        # sample must not floor to the one before it (drive() then waited for it forever)
-        k_out_end = int(math.floor((t_end_s - self.t0_s) * self.fs_out_hz + 1e-3))
+        k_out_end = output_index(t_end_s, self.t0_s, self.fs_out_hz)
         k_end = k_out_end * self.n_sub
         n_total = k_end - self._k
         if n_total <= 0:

@@ -15,13 +15,12 @@ coupled): no library integrates "this state space plus a user force" on it.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from typing import Callable
 
 import numpy as np
 
-from .coupling import PassResult, TwinStepper
+from .coupling import PassResult, TwinStepper, output_index
 
 
 def advance_with_spring_force(st: TwinStepper, t_end_s: float, speed_mps: float, rows: np.ndarray,
@@ -40,7 +39,7 @@ def advance_with_spring_force(st: TwinStepper, t_end_s: float, speed_mps: float,
     minv_tt = np.linalg.solve(model.mass, rows.T)                   # (n_dof, n_springs)
     fs = st.fs_out_hz
     k_now = st._k // st.n_sub
-    k_end = int(math.floor((t_end_s - st.t0_s) * fs + 1e-9))
+    k_end = output_index(t_end_s, st.t0_s, fs)
     parts, forces = [], []
     while k_now < k_end:
         k_next = min(k_now + every, k_end)

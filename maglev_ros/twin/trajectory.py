@@ -20,6 +20,8 @@ from typing import Callable
 import numpy as np
 from scipy.signal import savgol_filter
 
+from .coupling import output_index
+
 SMOOTH_S = 1.0          # window of the local cubic fit of the positions [s]
 POLYORDER = 3
 
@@ -114,7 +116,7 @@ def drive(stepper, trajectory: MeasuredTrajectory, t_end_s: float, block_s: floa
     parts = []
     while True:
         t_now = float(stepper.time_s)
-        k_out = math.floor((min(t_now + block_s, t_end_s) - stepper.t0_s) * fs + 1e-3)
+        k_out = output_index(min(t_now + block_s, t_end_s), stepper.t0_s, fs)
         t_next = stepper.t0_s + k_out / fs
         if t_next <= t_now + 0.5 / fs:
             break

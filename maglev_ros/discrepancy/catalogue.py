@@ -222,6 +222,9 @@ def bearing_hypotheses(spec: ModelSpec) -> list[Hypothesis]:
 
 
 MIN_DELAY_SAMPLES = 1.0   # a fitted delay shorter than one sample period of the vehicle channels is no finding
+# ... nor one shorter than a levitation controller's own period: digital levitation control runs at
+# 1 kHz or faster, so a slower recording does not make a longer delay the controller's own
+CONTROL_PERIOD_S = 1e-3
 
 
 CONTROL_DELAY_FORMS = ("delay", "lag")   # transport delay of the law, first-order lag of the current
@@ -231,8 +234,10 @@ def control_delay_hypothesis(vehicle_channels: list[str], form: str = "delay", s
     """The levitation current late on the control law: ``form`` "delay" (a transport delay, what a
     digital controller's sampling, filters and bus give) or "lag" (a first-order lag, what a coil's
     L/R gives). Both are fitted: they differ where w tau ~ 1, and which one the data follow is evidence.
-    ``sample_rate_hz``: of the vehicle channels (the shortest delay that counts is one sample)."""
-    min_delay_s = MIN_DELAY_SAMPLES / float(sample_rate_hz)
+    ``sample_rate_hz``: of the vehicle channels (the shortest delay that counts is one sample, or
+    one control period when the recording is slower than the controller)."""
+    sample_s = MIN_DELAY_SAMPLES / float(sample_rate_hz)
+    min_delay_s = min(sample_s, CONTROL_PERIOD_S)
     if form not in CONTROL_DELAY_FORMS:
         raise ValueError(f"control_delay form: expected one of {CONTROL_DELAY_FORMS}, got {form!r}")
 
@@ -242,9 +247,11 @@ def control_delay_hypothesis(vehicle_channels: list[str], form: str = "delay", s
 
     def plaus(p):
         if p[0] < min_delay_s:
-            # a lag shorter than one sample of the recording is what a digital controller's own
-            # sample-and-hold gives, and the recording cannot resolve it: the calibrated gains absorb it
-            return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below one sample period of the vehicle channels "
+            # a lag shorter than one sample of the recording (or one control period) is what a digital
+            # controller's own sample-and-hold gives: the calibrated gains absorb it
+            what = ("one sample period of the vehicle channels" if sample_s <= CONTROL_PERIOD_S
+                    else "one period of a levitation controller")
+            return False, (f"fitted delay {p[0] * 1e3:.2f} ms is below {what} "
                            f"({min_delay_s * 1e3:.2f} ms: within the controller's own lag)")
         if p[0] > 0.025:
             return False, f"fitted delay {p[0] * 1e3:.0f} ms is longer than any levitation controller allows"

@@ -23,6 +23,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
+from ..instrument_band import apply_limits, instrument_band_limits
 from ..irregularity import measure_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
@@ -49,6 +50,8 @@ class PassPreparer:
     raw_passes: list[Recording]
     same_heldout: bool
     notes: list[str] = field(default_factory=list)
+    # (pass index, channel group) -> the instrument's band limit found (:mod:`..instrument_band`)
+    band_limits: dict = field(default_factory=dict)
 
     def __call__(self, spec: ModelSpec, floor_spec: ModelSpec | None = None,
                  log: Callable[[str], None] | None | bool = True) -> PassSet:
@@ -62,6 +65,7 @@ class PassPreparer:
                                           trim_wavelengths=cfg.irregularity_trim_wavelengths,
                                           edge_s=cfg.irregularity_edge_s, log=say)
         full = [prepare(r, spec if floor_spec is None else floor_spec) for r in ps]
+        apply_limits(full, self.band_limits)
         # held out: every other pass. (Alternate 1.5 s windows of the training pass as extra
         # held-out data were tried: on a clean 2-span case a guideway sensor's model error then
         # "generalised" to the same pass's other windows and was called a 9 % scale fault.)
@@ -124,6 +128,13 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
     data0 = data = prep(base0)
     progress.advance(note="rail from the nominal twin")
     base = fit_base(base0, data.rd_train, config.base_max_nfev)
+    limits = instrument_band_limits(base.spec, data.rd_all)
+    if limits:
+        # an instrument's low-pass inside the compared bands: compared below it, calibrated again
+        prep.band_limits = limits
+        prep.notes.extend(lim.words() for lim in limits.values())
+        data0 = data = prep(base0)
+        base = fit_base(base0, data.rd_train, config.base_max_nfev)
     progress.advance(note="calibrated")
     if config.irregularity and any(p.irregularity is not None for p in data.passes):
         data = prep(base.spec)

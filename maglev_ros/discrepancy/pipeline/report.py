@@ -171,6 +171,8 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
                                                                 for n, c in rd.rec.channels.items()}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
                         **({"sensor_delay": cal.sensor_delay} if cal.sensor_delay else {}),
+                        **({"instrument_band": [lim.to_dict() for lim in cal.prepare.band_limits.values()]}
+                           if cal.prepare.band_limits else {}),
                         **({"mode_pattern": loc.mode_pattern.to_dict()} if loc.mode_pattern else {}),
                         **({"with_found_physics": recal.to_dict()} if recal is not None else {})},
     }

@@ -1,0 +1,100 @@
+"""The band an instrument passes, from the recording against the twin: a low-pass inside the compared bands.
+
+A DAQ's anti-alias filter may cut well below the 0.7 x Nyquist the band features use (a structural
+DAQ sampling at 1 kHz with a 100 Hz low-pass). Above its corner the measured band powers fall by
+orders of magnitude under any twin's, and a calibration that compares them drags the girder's
+parameters to match (a partner clean case low-passed at 100 Hz: floor 0.073 -> 0.26 and an attachment
+"found"; a bearing case called a girder loss). Per recording and guideway channel group (one
+acquisition system), the median over its channels' cells where the twin clearly exceeds the noise of
+measured / modelled band power is read band by band down from the highest compared band: when the
+highest is below a quarter (-6 dB, a filter's roll-off deepens upwards) the run of bands below one
+half (-3 dB, the corner's definition) is the instrument's stop band, and the group's channels are
+compared below it.
+Parameter errors move a mode by a band at most, so a calibrated twin's ratio stays near one there
+(0.8-1.2 on clean partner cases); nothing is trimmed on such recordings.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .evaluate import RecData, _twin_powers, fit_mask
+from .model import ModelSpec
+
+HALF_POWER = 0.5        # a band below -3 dB of the twin is past the instrument's corner
+TOP_BELOW = 0.25        # ... and the highest compared band must be past -6 dB: a roll-off, not a bump
+TWIN_OVER_NOISE = 4.0   # cells where the twin clearly exceeds the noise floor
+MIN_BANDS_KEPT = 4      # fewer compared bands left: the group is left as it is (nothing to compare)
+GUIDEWAY_GROUPS = ("guideway_accel", "guideway_disp")
+
+
+@dataclass(frozen=True)
+class BandLimit:
+    recording: str
+    group: str
+    upper_hz: float                   # bands wholly below are compared
+    ratio_by_band: tuple              # (band centre [Hz], median measured / model power) of the trimmed run
+
+    def words(self) -> str:
+        worst = min(r for _, r in self.ratio_by_band)
+        return (f"{self.recording}: the {self.group} channels read {worst:.2g}x the twin's band power and less above "
+                f"{self.upper_hz:.0f} Hz, falling with frequency like an instrument's low-pass: compared below it")
+
+    def to_dict(self) -> dict:
+        return {"recording": self.recording, "group": self.group, "upper_hz": self.upper_hz,
+                "ratio_by_band": [list(x) for x in self.ratio_by_band]}
+
+
+def instrument_band_limits(spec: ModelSpec, rds: list[RecData]) -> dict[tuple[int, str], BandLimit]:
+    """(index of the recording in ``rds``, channel group) -> the band limit found (none: not there)."""
+    out = {}
+    for i, rd in enumerate(rds):
+        pt, _ = _twin_powers(spec, rd)
+        edges, centre = rd.grid.edges_hz, rd.grid.band_center_hz
+        by_group: dict[str, list] = {}
+        for n, ch in rd.rec.channels.items():
+            # the guideway sensors only: their twin is forced by the vehicle's passage, within ~30 % in every
+            # band on clean lines; the vehicle channels' twin follows the reconstructed rail, whose error at
+            # short waves puts it at 0.03-1x the measured band power at 30-150 Hz on a clean generated line
+            used = fit_mask(rd, n)
+            if ch.group not in GUIDEWAY_GROUPS or n not in pt or not used.any():
+                continue
+            noise = rd.noise.get(n, np.zeros(rd.grid.n_bands))[None, :]
+            ok = (pt[n] > TWIN_OVER_NOISE * noise) & np.isfinite(rd.pm[n]) & used[None, :]
+            by_group.setdefault(ch.group, []).append(np.where(ok, rd.pm[n] / np.maximum(pt[n] + noise, 1e-300), np.nan))
+        for g, rs in by_group.items():
+            cells = np.concatenate(rs, axis=0)
+            have = np.sum(np.isfinite(cells), axis=0) >= 3
+            if not have.any():
+                continue
+            med = np.full(cells.shape[1], np.nan)
+            med[have] = np.nanmedian(cells[:, have], axis=0)
+            bands = np.flatnonzero(have)
+            if not med[bands[-1]] < TOP_BELOW:
+                continue
+            k = bands.size - 1
+            while k >= 0 and med[bands[k]] < HALF_POWER:
+                k -= 1
+            if k + 1 < MIN_BANDS_KEPT:
+                continue
+            cut = bands[k + 1:]
+            out[(i, g)] = BandLimit(rd.rec.name, g, float(edges[cut[0]]),
+                                    tuple((float(centre[b]), float(med[b])) for b in cut))
+    return out
+
+
+def apply_limits(rds: list[RecData], limits: dict[tuple[int, str], BandLimit]) -> None:
+    """Compare each limited group's channels (and the features built from them) below its limit, in place."""
+    for (i, g), lim in limits.items():
+        rd = rds[i]
+        below = rd.grid.edges_hz[1:] <= lim.upper_hz + 1e-9
+        names = {n for n, ch in rd.rec.channels.items() if ch.group == g}
+        for n in names:
+            rd.masks[n] = rd.masks[n] & below
+        for k, pair in rd.sens_pairs.items():
+            if names & set(pair):
+                rd.sens_masks[k] = rd.sens_masks[k] & below
+        for b, mags in rd.body_pairs.items():
+            if names & ({b} | set(mags)):
+                rd.body_masks[b] = rd.body_masks[b] & below

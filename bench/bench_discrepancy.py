@@ -4,8 +4,10 @@ the partner's simulator recordings (``--partner``).
 Usage: .venv/bin/python bench/bench_discrepancy.py [--split tune|heldout|blind|both] [--jobs 2] [--limit N]
        [--only EFFECT,...] [--json OUT]   (cases are written to OUT as they finish)
        .venv/bin/python bench/bench_discrepancy.py --partner [DIR] [--passes 1|2|both] [--cases ID,...]
-       [--partner-rate HZ] [--jobs 2] [--json OUT]   (with --split too: our splits first, then the partner's;
-                                          --partner-rate: the partner's channels resampled to HZ first)
+       [--partner-rate HZ] [--partner-lowpass FRAC [--causal]] [--jobs 2] [--json OUT]
+                                          (with --split too: our splits first, then the partner's;
+                                          --partner-rate: the partner's channels resampled to HZ first;
+                                          --partner-lowpass: then low-passed like a DAQ at FRAC x Nyquist)
        .venv/bin/python bench/bench_discrepancy.py --table OUT   (tables of a saved, even partial, run)
        .venv/bin/python bench/bench_discrepancy.py --table REPORTS_DIR --passes 1|2 [--partner DIR]
                                           (partner tables of a folder of <ID>.json diagnosis reports)
@@ -341,18 +343,39 @@ def at_rate(rec, rate_hz: float | None):
     return replace(rec, channels=chans)
 
 
+def lowpassed(rec, frac: float | None, causal: bool = False):
+    """``rec`` with every channel low-passed as a DAQ's anti-alias filter would (4th-order Butterworth at
+    ``frac`` x the channel's Nyquist frequency; zero-phase, or ``causal`` with its group delay), to judge
+    the diagnosis when an instrument's roll-off lies inside the compared bands. None: unchanged."""
+    from dataclasses import replace
+
+    from scipy import signal
+    if not frac:
+        return rec
+    chans = {}
+    for n, ch in rec.channels.items():
+        sos = signal.butter(4, float(frac), output="sos")      # Wn in units of the Nyquist frequency
+        m0 = float(np.mean(ch.values))
+        f = signal.sosfilt if causal else signal.sosfiltfilt
+        chans[n] = replace(ch, values=f(sos, ch.values - m0) + m0)
+    return replace(rec, channels=chans)
+
+
 def run_partner_one(args):
     """Diagnose one partner case as ``maglev-ros diagnose`` does: the ambient recording and the first
     pass (calibrates), plus the second pass (held out) when ``n_passes`` is 2; every channel resampled
-    to ``rate_hz`` first when given (:func:`at_rate`)."""
-    case_dir, n_passes, rate_hz = args
+    to ``rate_hz`` first when given (:func:`at_rate`), then low-passed at ``lp_frac`` of its Nyquist
+    frequency when given (:func:`lowpassed`)."""
+    case_dir, n_passes, rate_hz, lp_frac, causal = args
     from maglev_ros.discrepancy.diagnose import diagnose
     from maglev_ros.discrepancy.recording import load_recording
     c = Path(case_dir)
     t = time.time()
     try:
-        passes = [at_rate(load_recording(c / p), rate_hz) for p in ("pass", "pass2")[:n_passes]]
-        ambient = at_rate(load_recording(c / "ambient"), rate_hz)
+        def daq(rec):
+            return lowpassed(at_rate(rec, rate_hz), lp_frac, causal)
+        passes = [daq(load_recording(c / p)) for p in ("pass", "pass2")[:n_passes]]
+        ambient = daq(load_recording(c / "ambient"))
         if ambient.kind != "ambient":
             raise ValueError(f"{c / 'ambient'}: run.kind {ambient.kind!r}, expected 'ambient'")
         rep, err = diagnose(passes, ambient).to_dict(), None
@@ -476,9 +499,10 @@ def run_partner(a, pdir: Path, out: dict) -> None:
     modes = (1, 2) if a.passes == "both" else (int(a.passes),)
     cases = _partner_cases(pdir, a.cases, a.only, a.limit)
     scorer = _partner_scorer(pdir)
-    jobs = [(str(c), m, a.partner_rate) for m in modes for c in cases]
+    jobs = [(str(c), m, a.partner_rate, a.partner_lowpass, a.causal) for m in modes for c in cases]
     for m in modes:
-        out[f"partner-{m}"] = {"dir": str(pdir), "passes": m, "cases": []}
+        out[f"partner-{m}"] = {"dir": str(pdir), "passes": m, "rate_hz": a.partner_rate,
+                               "lowpass_nyquist": a.partner_lowpass, "causal": a.causal, "cases": []}
     with ProcessPoolExecutor(a.jobs) as ex:
         for r in ex.map(run_partner_one, jobs):
             sec = out[f"partner-{r['passes']}"]
@@ -522,6 +546,10 @@ def main():
     ap.add_argument("--partner-rate", type=float, default=None, metavar="HZ",
                     help="partner cases: every faster channel resampled to HZ first (another DAQ rate, the same "
                          "physics and truth)")
+    ap.add_argument("--partner-lowpass", type=float, default=None, metavar="FRAC",
+                    help="partner cases: every channel low-passed at FRAC (0-1) of its Nyquist frequency first "
+                         "(4th-order Butterworth, zero-phase; an instrument's roll-off inside the compared bands)")
+    ap.add_argument("--causal", action="store_true", help="with --partner-lowpass: a causal filter (its delay too)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--limit", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated effects (clean, girder_attachment, ...)")

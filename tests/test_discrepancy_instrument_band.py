@@ -35,15 +35,22 @@ def case():
                      design_error={"E": 0.04, "kb": 0.1, "kp": 0.04})
 
 
-def test_a_low_passed_group_is_compared_below_its_half_power_band(case):
+@pytest.fixture(scope="module")
+def filtered(case):
+    """The case with its guideway accelerometers low-passed, calibrated; and the filter's half-power frequency."""
     fs = case.passes[0].channels[next(n for n, c in case.passes[0].channels.items()
                                       if c.group == "guideway_accel")].sample_rate_hz
     sos = signal.butter(4, CORNER_HZ, fs=fs, output="sos")
     f = np.linspace(1.0, fs / 2, 4000)
     _, h = signal.sosfreqz(sos, worN=f, fs=fs)
     power = np.abs(h) ** 4                                 # zero-phase: the filter twice, power squared
-    f_half = float(f[np.argmax(power < 0.5)])
-    cal = calibrate([_low_passed(p, sos) for p in case.passes], _low_passed(case.ambient, sos), DiagnoseConfig())
+    ambient = _low_passed(case.ambient, sos)
+    return calibrate([_low_passed(p, sos) for p in case.passes], ambient, DiagnoseConfig()), ambient, \
+        float(f[np.argmax(power < 0.5)])
+
+
+def test_a_low_passed_group_is_compared_below_its_half_power_band(filtered):
+    cal, _, f_half = filtered
     limits = cal.prepare.band_limits
     assert limits and {g for _, g in limits} == {"guideway_accel"}
     k_half = np.searchsorted(BAND_EDGES_HZ, f_half)         # edge index just above the half-power frequency
@@ -56,6 +63,17 @@ def test_a_low_passed_group_is_compared_below_its_half_power_band(case):
         assert (top <= max(lim.upper_hz for lim in limits.values())) == (c.group == "guideway_accel"), n
 
 
+def test_the_ambient_recording_is_compared_below_the_passes_limit(filtered):
+    from maglev_ros.discrepancy.pipeline.localize import localize
+    cal, ambient, f_half = filtered
+    upper = min(lim.upper_hz for lim in cal.prepare.band_limits.values())
+    rd = localize(cal, ambient, DiagnoseConfig()).ambient
+    tops = [BAND_EDGES_HZ[1:][rd.masks[n]].max() for n, c in rd.rec.channels.items()
+            if c.group == "guideway_accel" and rd.masks[n].any()]
+    assert tops and max(tops) <= upper + 1e-9 < BAND_EDGES_HZ[-1]
+
+
 def test_an_unfiltered_line_keeps_every_band(case):
     cal = calibrate(case.passes, case.ambient, DiagnoseConfig())
     assert cal.prepare.band_limits == {}
+

@@ -84,6 +84,16 @@ def instrument_band_limits(spec: ModelSpec, rds: list[RecData]) -> dict[tuple[in
     return out
 
 
+def limits_for_another(limits: dict[tuple[int, str], BandLimit], name: str) -> dict[tuple[int, str], BandLimit]:
+    """The passes' strictest limit of each group, as limits for one more recording (index 0) made by the same
+    instruments, e.g. the ambient recording, whose twin (no vehicle) gives no band power to read a roll-off from."""
+    out: dict[tuple[int, str], BandLimit] = {}
+    for (_, g), lim in limits.items():
+        if (0, g) not in out or lim.upper_hz < out[(0, g)].upper_hz:
+            out[(0, g)] = BandLimit(name, g, lim.upper_hz, lim.ratio_by_band)
+    return out
+
+
 def apply_limits(rds: list[RecData], limits: dict[tuple[int, str], BandLimit]) -> None:
     """Compare each limited group's channels (and the features built from them) below its limit, in place."""
     for (i, g), lim in limits.items():

@@ -77,3 +77,24 @@ def test_an_unfiltered_line_keeps_every_band(case):
     cal = calibrate(case.passes, case.ambient, DiagnoseConfig())
     assert cal.prepare.band_limits == {}
 
+
+
+def test_reprojection_without_rows_is_the_least_squares_solution_of_the_rest(case):
+    """reprojected_without: one Gauss-Newton step from the calibration = numpy's least squares on the kept rows
+    with the calibration's prior rows (a linear residual r(th) = r0 + J (th - th0) is exact for it)."""
+    from maglev_ros.discrepancy.fitting import CAL_HI, CAL_LO, PRIOR_SIGMA, BaseFit, reprojected_without
+    from maglev_ros.discrepancy.model import base_spec
+    rng = np.random.default_rng(3)
+    spec0 = base_spec(case.passes[0].metadata)
+    th0 = np.array([0.05, 0.2, -0.03, 0.04, 0.02])
+    jac, r0 = rng.standard_normal((40, 5)), 0.1 * rng.standard_normal(40)
+    base = BaseFit(spec0.with_(cal=tuple(th0)), th0, jac, r0, 0)
+    drop = np.zeros(40, bool)
+    drop[25:] = True
+    got = np.array(reprojected_without(base, drop).cal)
+    lam = 0.02 / PRIOR_SIGMA
+    a = np.vstack([jac[~drop], lam * np.eye(5)])
+    b = np.concatenate([-(r0[~drop] - jac[~drop] @ th0), np.zeros(5)])
+    ref = np.linalg.lstsq(a, b, rcond=None)[0]
+    assert np.all(CAL_LO < ref) and np.all(ref < CAL_HI)
+    assert np.allclose(got, ref, atol=1e-10)

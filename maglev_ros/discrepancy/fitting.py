@@ -79,6 +79,17 @@ def _project(base: BaseFit, r: np.ndarray, rows: np.ndarray | None = None) -> tu
     return r + J @ d[cols], d
 
 
+def reprojected_without(base: BaseFit, drop_rows: np.ndarray) -> ModelSpec:
+    """The calibrated twin with its parameters re-fitted linearly (one Gauss-Newton step on the calibration's
+    Jacobian, same prior) as if ``drop_rows`` of the residual vector had not been fitted: what the other
+    channels alone say, without a simulation per step."""
+    keep = ~np.asarray(drop_rows, bool)
+    J, r = base.jac[keep], base.r0[keep]
+    lam = (0.02 / PRIOR_SIGMA) ** 2
+    d = -np.linalg.solve(J.T @ J + lam * np.eye(J.shape[1]), J.T @ r + lam * base.theta)
+    return _with_cal(base.spec, np.clip(base.theta + d, CAL_LO, CAL_HI))
+
+
 @dataclass
 class HypFit:
     hyp: Hypothesis

@@ -23,10 +23,13 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..instrument_band import apply_limits, instrument_band_limits
+from ..instrument_band import apply_limits, instrument_band_limits, merge_limits
 from ..irregularity import measure_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
+
+# rounds of instrument-band reading and re-calibration: each reads only where the previous one stopped comparing
+BAND_ROUNDS = 3
 
 
 def mean_speed_mps(rec: Recording) -> float:
@@ -128,13 +131,21 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
     data0 = data = prep(base0)
     progress.advance(note="rail from the nominal twin")
     base = fit_base(base0, data.rd_train, config.base_max_nfev)
-    limits = instrument_band_limits(base.spec, data.rd_all)
-    if limits:
-        # an instrument's low-pass inside the compared bands: compared below it, calibrated again
-        prep.band_limits = limits
-        prep.notes.extend(lim.words() for lim in limits.values())
+    for _ in range(BAND_ROUNDS):
+        # an instrument's low-pass inside the compared bands: compared below it, calibrated again, and read
+        # again on that twin (each round reads only the bands the previous one still compared)
+        found = instrument_band_limits(base, data.rd_train, data.rd_all)
+        if not found:
+            break
+        prep.band_limits = merge_limits(prep.band_limits, found)
+        passed_hz = [lim.upper_hz for (_, g), lim in prep.band_limits.items() if g == "guideway_accel"]
+        if passed_hz:
+            # the same accelerometers recorded the ambient: its modes above the corner are read through it
+            damping = measure_damping(ambient, nominal, below_hz=min(passed_hz))
+            base0 = nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied else nominal
         data0 = data = prep(base0)
         base = fit_base(base0, data.rd_train, config.base_max_nfev)
+    prep.notes.extend(lim.words() for lim in prep.band_limits.values())
     progress.advance(note="calibrated")
     if config.irregularity and any(p.irregularity is not None for p in data.passes):
         data = prep(base.spec)

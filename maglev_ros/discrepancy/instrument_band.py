@@ -30,7 +30,8 @@ from .fitting import BaseFit, reprojected_without
 HALF_POWER = 0.5        # a band below -3 dB of the twin is past the instrument's corner
 TOP_BELOW = 0.25        # ... and the two highest compared bands past -6 dB: a stop band, not one misplaced mode
 TWIN_OVER_NOISE = 4.0   # cells where the twin clearly exceeds the noise floor
-MIN_BANDS_KEPT = 4      # fewer compared bands left: the group is left as it is (nothing to compare)
+MIN_BANDS_KEPT = 1      # a stop band is cut even when few bands pass (compared, it bends the calibration: a
+                        # displacement sensor low-passed to 3 bands drew E x1.6); none passing: left as it is
 GUIDEWAY_GROUPS = ("guideway_accel", "guideway_disp")
 
 
@@ -51,9 +52,13 @@ class BandLimit:
                 "ratio_by_band": [list(x) for x in self.ratio_by_band]}
 
 
-def instrument_band_limits(base: BaseFit, rd_train: list[RecData], rds: list[RecData]) -> dict[tuple[int, str], BandLimit]:
+def instrument_band_limits(base: BaseFit, rd_train: list[RecData], rds: list[RecData],
+                           known: dict | None = None) -> dict[tuple[int, str], BandLimit]:
     """(index of the recording in ``rds``, channel group) -> the band limit found (none: not there); ``base``:
-    the twin calibrated on ``rd_train``."""
+    the twin calibrated on ``rd_train``. ``known``: limits found before (the groups they name are compared
+    below them already): there the filter is established and its roll-off is followed down while the
+    highest band still compared reads under one half."""
+    known_groups = {g for _, g in (known or {})}
     out = {}
     # the guideway sensors only: their twin is forced by the vehicle's passage, within ~30 % in every
     # band on clean lines; the vehicle channels' twin follows the reconstructed rail, whose error at
@@ -64,13 +69,13 @@ def instrument_band_limits(base: BaseFit, rd_train: list[RecData], rds: list[Rec
         own = ~residual_rows(base.spec, rd_train, Selection(others, own=True))
         spec = reprojected_without(base, own) if (~own).any() else base.spec
         for i, rd in enumerate(rds):
-            lim = _group_limit(spec, rd, g)
+            lim = _group_limit(spec, rd, g, HALF_POWER if g in known_groups else TOP_BELOW)
             if lim is not None:
                 out[(i, g)] = lim
     return out
 
 
-def _group_limit(spec, rd: RecData, g: str) -> BandLimit | None:
+def _group_limit(spec, rd: RecData, g: str, top_below: float) -> BandLimit | None:
     pt, _ = _twin_powers(spec, rd)
     edges, centre = rd.grid.edges_hz, rd.grid.band_center_hz
     rs = []
@@ -90,7 +95,7 @@ def _group_limit(spec, rd: RecData, g: str) -> BandLimit | None:
     med = np.full(cells.shape[1], np.nan)
     med[have] = np.nanmedian(cells[:, have], axis=0)
     bands = np.flatnonzero(have)
-    if bands.size < 2 or not np.all(med[bands[-2:]] < TOP_BELOW):
+    if bands.size < 2 or not np.all(med[bands[-2:]] < top_below):
         return None
     k = bands.size - 1
     while k >= 0 and med[bands[k]] < HALF_POWER:
@@ -110,6 +115,17 @@ def merge_limits(old: dict[tuple[int, str], BandLimit], new: dict[tuple[int, str
         run = tuple(sorted(set(lim.ratio_by_band) | set(prev.ratio_by_band if prev else ())))
         out[key] = BandLimit(lim.recording, lim.group, min(lim.upper_hz, prev.upper_hz) if prev else lim.upper_hz, run)
     return out
+
+
+def common_limits(limits: dict[tuple[int, str], BandLimit], names: list[str]) -> dict[tuple[int, str], BandLimit]:
+    """Each group's lowest limit over the recordings, for every one of ``names`` (the recordings, by index):
+    one acquisition system recorded them all, and a pass whose twin bends more reads the corner higher."""
+    low: dict[str, BandLimit] = {}
+    for (_, g), lim in limits.items():
+        if g not in low or lim.upper_hz < low[g].upper_hz:
+            low[g] = lim
+    return {(i, g): BandLimit(name, g, lim.upper_hz, lim.ratio_by_band)
+            for g, lim in low.items() for i, name in enumerate(names)}
 
 
 def limits_for_another(limits: dict[tuple[int, str], BandLimit], name: str) -> dict[tuple[int, str], BandLimit]:

@@ -23,7 +23,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..instrument_band import apply_limits, instrument_band_limits, merge_limits
+from ..instrument_band import apply_limits, common_limits, instrument_band_limits, merge_limits
 from ..irregularity import measure_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
@@ -134,10 +134,10 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
     for _ in range(BAND_ROUNDS):
         # an instrument's low-pass inside the compared bands: compared below it, calibrated again, and read
         # again on that twin (each round reads only the bands the previous one still compared)
-        found = instrument_band_limits(base, data.rd_train, data.rd_all)
+        found = instrument_band_limits(base, data.rd_train, data.rd_all, prep.band_limits)
         if not found:
             break
-        prep.band_limits = merge_limits(prep.band_limits, found)
+        prep.band_limits = common_limits(merge_limits(prep.band_limits, found), [rd.rec.name for rd in data.rd_all])
         passed_hz = [lim.upper_hz for (_, g), lim in prep.band_limits.items() if g == "guideway_accel"]
         if passed_hz:
             # the same accelerometers recorded the ambient: its modes above the corner are read through it

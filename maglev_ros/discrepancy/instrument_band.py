@@ -20,12 +20,14 @@ unfiltered line (0.6-1.2 on the 14 partner cases but for one displacement sensor
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .evaluate import RecData, Selection, _twin_powers, fit_mask, residual_rows
-from .fitting import BaseFit, reprojected_without
+from .fitting import CAL_HI, CAL_LO, BaseFit, reprojected_without
+from .model import CAL_PARAMS, ModelSpec, guideway_modal
 
 HALF_POWER = 0.5        # a band below -3 dB of the twin is past the instrument's corner
 TOP_BELOW = 0.25        # ... and the two highest compared bands past -6 dB: a stop band, not one misplaced mode
@@ -53,11 +55,13 @@ class BandLimit:
 
 
 def instrument_band_limits(base: BaseFit, rd_train: list[RecData], rds: list[RecData],
-                           known: dict | None = None) -> dict[tuple[int, str], BandLimit]:
+                           known: dict | None = None, anchor: tuple[str, float] | None = None
+                           ) -> dict[tuple[int, str], BandLimit]:
     """(index of the recording in ``rds``, channel group) -> the band limit found (none: not there); ``base``:
     the twin calibrated on ``rd_train``. ``known``: limits found before (the groups they name are compared
     below them already): there the filter is established and its roll-off is followed down while the
-    highest band still compared reads under one half."""
+    highest band still compared reads under one half. ``anchor``: (span id, first bending mode [Hz]) measured
+    on the ambient recording (a zero-phase filter leaves it in place), which the reference twin is tuned to."""
     known_groups = {g for _, g in (known or {})}
     out = {}
     # the guideway sensors only: their twin is forced by the vehicle's passage, within ~30 % in every
@@ -65,19 +69,36 @@ def instrument_band_limits(base: BaseFit, rd_train: list[RecData], rds: list[Rec
     # short waves puts it at 0.03-1x the measured band power at 30-150 Hz on a clean generated line
     groups = [g for g in GUIDEWAY_GROUPS if rds and rds[0].rec.names(g)]
     for g in groups:
-        others = frozenset(n for n, ch in rd_train[0].rec.channels.items() if ch.group != g)
-        own = ~residual_rows(base.spec, rd_train, Selection(others, own=True))
+        others = Selection(frozenset(n for n, ch in rd_train[0].rec.channels.items() if ch.group != g), own=True)
+        own = ~residual_rows(base.spec, rd_train, others)
         spec = reprojected_without(base, own) if (~own).any() else base.spec
+        if anchor is not None:
+            # the other channels say little of the density: a 15 % error put the twin's second mode a band
+            # below the measured one and the band ratios read a misplaced mode, not the filter
+            spec = tuned_to(spec, *anchor)
+        top_below = HALF_POWER if g in known_groups else TOP_BELOW
         for i, rd in enumerate(rds):
-            lim = _group_limit(spec, rd, g, HALF_POWER if g in known_groups else TOP_BELOW)
+            lim = _group_limit(spec, rd, g, top_below)
             if lim is not None:
                 out[(i, g)] = lim
     return out
 
 
-def _group_limit(spec, rd: RecData, g: str, top_below: float) -> BandLimit | None:
+def tuned_to(spec: ModelSpec, span_id: str, f1_hz: float) -> ModelSpec:
+    """``spec`` with its density scaled so that span ``span_id``'s first bending mode rings at ``f1_hz``."""
+    ids = [sp.span_id for sp in spec.spans]
+    if span_id not in ids or not f1_hz > 0:
+        return spec
+    modal = guideway_modal(spec)
+    f_twin = float(modal.freq_hz[modal.span_index == ids.index(span_id)].min())
+    th = np.zeros(len(CAL_PARAMS))
+    th[:len(spec.cal)] = spec.cal
+    th[CAL_PARAMS.index("rho")] += 2.0 * math.log(f_twin / f1_hz)        # f ~ sqrt(E / rho)
+    return spec.with_(cal=tuple(float(x) for x in np.clip(th, CAL_LO, CAL_HI)))
+
+
+def _medians(spec, rd: RecData, g: str) -> np.ndarray | None:
     pt, _ = _twin_powers(spec, rd)
-    edges, centre = rd.grid.edges_hz, rd.grid.band_center_hz
     rs = []
     for n, ch in rd.rec.channels.items():
         used = fit_mask(rd, n)
@@ -90,11 +111,17 @@ def _group_limit(spec, rd: RecData, g: str, top_below: float) -> BandLimit | Non
         return None
     cells = np.concatenate(rs, axis=0)
     have = np.sum(np.isfinite(cells), axis=0) >= 3
-    if not have.any():
-        return None
     med = np.full(cells.shape[1], np.nan)
     med[have] = np.nanmedian(cells[:, have], axis=0)
-    bands = np.flatnonzero(have)
+    return med
+
+
+def _group_limit(spec, rd: RecData, g: str, top_below: float) -> BandLimit | None:
+    med = _medians(spec, rd, g)
+    if med is None:
+        return None
+    edges, centre = rd.grid.edges_hz, rd.grid.band_center_hz
+    bands = np.flatnonzero(np.isfinite(med))
     if bands.size < 2 or not np.all(med[bands[-2:]] < top_below):
         return None
     k = bands.size - 1

@@ -134,7 +134,7 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
     for _ in range(BAND_ROUNDS):
         # an instrument's low-pass inside the compared bands: compared below it, calibrated again, and read
         # again on that twin (each round reads only the bands the previous one still compared)
-        found = instrument_band_limits(base, data.rd_train, data.rd_all, prep.band_limits)
+        found = instrument_band_limits(base, data.rd_train, data.rd_all, prep.band_limits, _first_mode(damping))
         if not found:
             break
         prep.band_limits = common_limits(merge_limits(prep.band_limits, found), [rd.rec.name for rd in data.rd_all])
@@ -162,6 +162,12 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
             base, data = fit_base(base0, data0.rd_train, max_nfev=1), data0   # one evaluation: its Jacobian
     nr, pc = fit_report(base.spec, data.rd_all)
     return Calibration(nominal, base0, base, damping, data, prep, nr, pc, guard, delay)
+
+
+def _first_mode(damping: MeasuredDamping) -> tuple[str, float] | None:
+    """(span id, frequency [Hz]) of the instrumented span's first mode as the ambient recording rings, if matched."""
+    m = damping.modes[0] if damping.modes else None
+    return (damping.span_id, m.freq_hz) if m is not None and m.matched and damping.span_id else None
 
 
 def _with_measured_delay(passes: list[Recording], config) -> tuple[list[Recording], dict | None]:

@@ -14,7 +14,9 @@ compared below it.
 The model read against is the calibrated twin re-fitted (linearly, :func:`.fitting.reprojected_without`)
 without the group's own rows: calibrated on them, the twin bends to the attenuated bands next to the corner
 (a 100 Hz filter on a partner line: bearing stiffness x1.6, the 105-125 Hz band read at 1.2 for a true
-0.065, the corner at 125 Hz; re-fitted without them, 0.17 and the corner at 88 Hz for a half-power 89.5 Hz).
+0.065, the corner at 125 Hz; re-fitted without them, 0.17 and the corner at 88 Hz for a half-power 89.5 Hz),
+and tuned to the span's first mode as the ambient recording rings (:func:`tuned_to`): without the guideway's
+accelerometers nothing else fixes the density, and a mode misplaced by a band reads like a filter.
 Parameter errors move a mode by a band at most, so the ratio stays near one at the top band of an
 unfiltered line (0.6-1.2 on the 14 partner cases but for one displacement sensor's 0.29); nothing is trimmed on such recordings.
 """

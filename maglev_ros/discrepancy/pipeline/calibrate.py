@@ -138,15 +138,8 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
         if not found:
             break
         prep.band_limits = common_limits(merge_limits(prep.band_limits, found), [rd.rec.name for rd in data.rd_all])
-        passed_hz = [lim.upper_hz for (_, g), lim in prep.band_limits.items() if g == "guideway_accel"]
-        if passed_hz:
-            # the same accelerometers recorded the ambient: its modes above the corner are read through it, and
-            # in the band next to it (still up to -3 dB, tilted: an 86 Hz mode under a 89.5 Hz half-power read
-            # 1.6 % for a true 2 %) through its slope
-            edges = data.rd_all[0].grid.edges_hz
-            below = edges[edges < min(passed_hz) - 1e-9]
-            damping = measure_damping(ambient, nominal, below_hz=float(below.max()) if below.size else 0.0)
-            base0 = nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied else nominal
+        damping = _damping_below(ambient, nominal, prep.band_limits, data.rd_all[0].grid.edges_hz) or damping
+        base0 = nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied else nominal
         data0 = data = prep(base0)
         base = fit_base(base0, data.rd_train, config.base_max_nfev)
     prep.notes.extend(lim.words() for lim in prep.band_limits.values())
@@ -166,6 +159,19 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
             base, data = fit_base(base0, data0.rd_train, max_nfev=1), data0   # one evaluation: its Jacobian
     nr, pc = fit_report(base.spec, data.rd_all)
     return Calibration(nominal, base0, base, damping, data, prep, nr, pc, guard, delay)
+
+
+def _damping_below(ambient: Recording | None, nominal: ModelSpec, limits: dict, edges_hz: np.ndarray
+                   ) -> MeasuredDamping | None:
+    """The ambient's damping from the modes the accelerometers pass (None: no accelerometer limit). The same
+    accelerometers recorded the ambient: its modes above the corner are read through the filter, and in the band
+    next to it (still up to -3 dB, tilted: an 86 Hz mode under a 89.5 Hz half-power read 1.6 % for a true 2 %)
+    through its slope."""
+    passed_hz = [lim.upper_hz for (_, g), lim in limits.items() if g == "guideway_accel"]
+    if not passed_hz:
+        return None
+    below = edges_hz[edges_hz < min(passed_hz) - 1e-9]
+    return measure_damping(ambient, nominal, below_hz=float(below.max()) if below.size else 0.0)
 
 
 def _first_mode(damping: MeasuredDamping) -> tuple[str, float] | None:

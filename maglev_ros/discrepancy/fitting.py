@@ -16,7 +16,7 @@ with kp, kv re-fitted on the same rows (:func:`fit_gains`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
@@ -84,10 +84,8 @@ def reprojected_without(base: BaseFit, drop_rows: np.ndarray) -> ModelSpec:
     Jacobian, same prior) as if ``drop_rows`` of the residual vector had not been fitted: what the other
     channels alone say, without a simulation per step."""
     keep = ~np.asarray(drop_rows, bool)
-    J, r = base.jac[keep], base.r0[keep]
-    lam = (0.02 / PRIOR_SIGMA) ** 2
-    d = -np.linalg.solve(J.T @ J + lam * np.eye(J.shape[1]), J.T @ r + lam * base.theta)
-    return _with_cal(base.spec, np.clip(base.theta + d, CAL_LO, CAL_HI))
+    _, d = _project(replace(base, jac=base.jac[keep]), base.r0[keep])
+    return _with_cal(base.spec, base.theta + d)
 
 
 @dataclass

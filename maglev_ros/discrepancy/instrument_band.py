@@ -134,36 +134,18 @@ def _group_limit(spec, rd: RecData, g: str, top_below: float) -> BandLimit | Non
     return BandLimit(rd.rec.name, g, float(edges[cut[0]]), tuple((float(centre[b]), float(med[b])) for b in cut))
 
 
-def merge_limits(old: dict[tuple[int, str], BandLimit], new: dict[tuple[int, str], BandLimit]) -> dict:
-    """Limits found in a further round (on data already compared below ``old``) joined to ``old``: the lower
-    limit of each recording and group, with the trimmed runs of both."""
-    out = dict(old)
-    for key, lim in new.items():
-        prev = out.get(key)
-        run = tuple(sorted(set(lim.ratio_by_band) | set(prev.ratio_by_band if prev else ())))
-        out[key] = BandLimit(lim.recording, lim.group, min(lim.upper_hz, prev.upper_hz) if prev else lim.upper_hz, run)
-    return out
-
-
-def common_limits(limits: dict[tuple[int, str], BandLimit], names: list[str]) -> dict[tuple[int, str], BandLimit]:
-    """Each group's lowest limit over the recordings, for every one of ``names`` (the recordings, by index):
-    one acquisition system recorded them all, and a pass whose twin bends more reads the corner higher."""
-    low: dict[str, BandLimit] = {}
-    for (_, g), lim in limits.items():
-        if g not in low or lim.upper_hz < low[g].upper_hz:
-            low[g] = lim
-    return {(i, g): BandLimit(name, g, lim.upper_hz, lim.ratio_by_band)
-            for g, lim in low.items() for i, name in enumerate(names)}
-
-
-def limits_for_another(limits: dict[tuple[int, str], BandLimit], name: str) -> dict[tuple[int, str], BandLimit]:
-    """The passes' strictest limit of each group, as limits for one more recording (index 0) made by the same
-    instruments, e.g. the ambient recording, whose twin (no vehicle) gives no band power to read a roll-off from."""
-    out: dict[tuple[int, str], BandLimit] = {}
-    for (_, g), lim in limits.items():
-        if (0, g) not in out or lim.upper_hz < out[(0, g)].upper_hz:
-            out[(0, g)] = BandLimit(name, g, lim.upper_hz, lim.ratio_by_band)
-    return out
+def common_limits(limits, names: list[str]) -> dict[tuple[int, str], BandLimit]:
+    """Each group's lowest limit among ``limits`` (BandLimits, from every recording and round), with the trimmed runs
+    of all, for every one of ``names`` (the recordings, by index): one acquisition system recorded them all (the
+    ambient recording too, whose twin has no vehicle to read a roll-off from), and a pass whose twin bends more
+    reads the corner higher."""
+    low: dict[str, float] = {}
+    runs: dict[str, set] = {}
+    for lim in limits:
+        low[lim.group] = min(low.get(lim.group, math.inf), lim.upper_hz)
+        runs.setdefault(lim.group, set()).update(lim.ratio_by_band)
+    return {(i, g): BandLimit(name, g, hz, tuple(sorted(runs[g]))) for g, hz in low.items()
+            for i, name in enumerate(names)}
 
 
 def apply_limits(rds: list[RecData], limits: dict[tuple[int, str], BandLimit]) -> None:

@@ -23,7 +23,7 @@ from maglev_ros.progress import NULL, Progress
 from ..damping import MeasuredDamping, measure_damping
 from ..evaluate import RecData, fit_report, prepare
 from ..fitting import BaseFit, fit_base
-from ..instrument_band import apply_limits, common_limits, instrument_band_limits, merge_limits
+from ..instrument_band import apply_limits, common_limits, instrument_band_limits
 from ..irregularity import measure_sensor_delay, with_twin_irregularities
 from ..model import ModelSpec, base_spec
 from ..recording import Recording
@@ -137,7 +137,8 @@ def calibrate(passes: Sequence[Recording], ambient: Recording | None, config,
         found = instrument_band_limits(base, data.rd_train, data.rd_all, prep.band_limits, _first_mode(damping))
         if not found:
             break
-        prep.band_limits = common_limits(merge_limits(prep.band_limits, found), [rd.rec.name for rd in data.rd_all])
+        prep.band_limits = common_limits([*prep.band_limits.values(), *found.values()],
+                                         [rd.rec.name for rd in data.rd_all])
         damping = _damping_below(ambient, nominal, prep.band_limits, data.rd_all[0].grid.edges_hz) or damping
         base0 = nominal.with_(guideway_damping_ratio=damping.twin_damping_ratio) if damping.applied else nominal
         data0 = data = prep(base0)

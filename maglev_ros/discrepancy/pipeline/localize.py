@@ -16,7 +16,7 @@ import numpy as np
 from maglev_ros.progress import NULL, Progress
 
 from ..evaluate import RecData, model_powers, prepare
-from ..instrument_band import apply_limits, limits_for_another
+from ..instrument_band import apply_limits, common_limits
 from ..localize import Mismatch, ResidualMap, mismatches, persistent_mismatches, residual_map
 from ..mode_pattern import ModePattern, mode_pattern
 from ..recording import Recording
@@ -59,7 +59,7 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     rd_amb = prepare(ambient, cal.base0) if ambient is not None else None
     if rd_amb is not None:
         # the ambient recording's guideway sensors are the passes': compared below the roll-off found on them
-        apply_limits([rd_amb], limits_for_another(cal.prepare.band_limits, ambient.name))
+        apply_limits([rd_amb], common_limits(cal.prepare.band_limits.values(), [ambient.name]))
     drops = [d for rd in rd_all for d in detect_dropouts(rd.rec, config.dropout_min_s)]
     mp = [model_powers(spec, rd) for rd in progress.steps(rd_all, lambda rd: rd.rec.source)]
     maps = [residual_map(rd, p) for rd, p in zip(rd_all, mp)]

@@ -12,7 +12,8 @@ pink/red sensor noise at varying levels, design values off the truth by several 
 the held-out variant an extra current-loop lag and the separated (precise-integration) solver.
 Effects are implemented here independently where that is cheap: a degraded bearing as an elastic
 pad in series with the nominal bearing, ambient vibration as random coloured point forces at
-random places on every girder (modal superposition), sensor faults on the recorded samples, a
+random places on every girder (modal superposition; every ambient recording rings this way at a
+level of its own, the ``ambient_excitation`` effect adds it to the passes too), sensor faults on the recorded samples, a
 girder attachment (tuned-mass-like resonator) by an augmented FE eigenproblem. Magnet
 nonlinearity is the twin kernel's smooth current saturation with a headroom set from the
 truth's own unsaturated peak current demand on the fastest pass. A cubic suspension term (out of
@@ -182,6 +183,26 @@ def guideway_profile(rng, split: str, x_lo: float, x_hi: float) -> tuple[np.ndar
     return x, r, {"psd": name, "scale": scale, "wavelength_band_m": band, "rms_m": float(np.std(r))}
 
 
+def _structural_effect_modes(gw: Guideway, spans, eff: str | None, tp: dict, numerics) -> ModalBasis | None:
+    """The guideway's modes with the case's structural effect (a bearing pad, an attachment) built into
+    ``gw``; None when the effect leaves the guideway as designed. Shared by the passes and the ambient."""
+    if eff == "bearing_stiffness":
+        fes = list(gw.spans_fe)
+        i, end = tp["span_index"], tp["end"]
+        kb = spans[i].props.bearing_stiffness_n_per_m
+        # pad stiffness so that the series stiffness is kb * factor
+        f = tp["factor"]
+        kpad = kb * f / (1 - f)
+        fes[i] = _span_fe_series_pad(spans[i], numerics.n_elements_per_span,
+                                     kpad if end == 0 else 1e30, kpad if end == 1 else 1e30)
+        gw.spans_fe = tuple(fes)
+        return gw.modes(numerics.mode_cutoff_hz, numerics.min_modes_per_span)
+    if eff == "girder_attachment":
+        return _attachment_modes(gw, tp["span_index"], tp["x_rel_m"], tp["freq_hz"], tp["mass_ratio"], 0.03,
+                                 numerics.mode_cutoff_hz)
+    return None
+
+
 def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, variant: dict,
                    irregularity=None) -> TwinStepper:
     if eff == "control_delay" or variant.get("extra_lag_s", 0) > 0:
@@ -190,24 +211,10 @@ def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, varian
     st = TwinStepper(cfg, spans, sensors=sensors, irregularity=irregularity, fs_out_hz=1000.0,
                      start_position_m=x0, start_speed_mps=v,
                      init="rest", method=variant.get("method", "newmark"), dt_max_s=variant.get("dt_s", 5e-4))
-    n_el = cfg.numerics.n_elements_per_span
-    changed = False
-    if eff == "bearing_stiffness":
-        fes = list(st.guideway.spans_fe)
-        i, end = tp["span_index"], tp["end"]
-        kb = spans[i].props.bearing_stiffness_n_per_m
-        # pad stiffness so that the series stiffness is kb * factor
-        f = tp["factor"]
-        kpad = kb * f / (1 - f)
-        fes[i] = _span_fe_series_pad(spans[i], n_el, kpad if end == 0 else 1e30, kpad if end == 1 else 1e30)
-        st.guideway.spans_fe = tuple(fes)
-        st.modal = st.guideway.modes(cfg.numerics.mode_cutoff_hz, cfg.numerics.min_modes_per_span)
-        changed = True
-    if eff == "girder_attachment":
-        st.modal = _attachment_modes(st.guideway, tp["span_index"], tp["x_rel_m"], tp["freq_hz"],
-                                     tp["mass_ratio"], 0.03, cfg.numerics.mode_cutoff_hz)
-        changed = True
+    modal = _structural_effect_modes(st.guideway, spans, eff, tp, cfg.numerics)
+    changed = modal is not None
     if changed:
+        st.modal = modal
         st.sensor_shapes = st.modal.shapes_at(st.sensor_x_m)
     if eff == "magnet_nonlinearity":
         st.current_limit_a = float(tp["current_limit_a"])
@@ -391,6 +398,7 @@ def _apply_sensor_fault(sig: dict, name: str, tp: dict, t: np.ndarray, ref: floa
         sig[name] = y
 
 
+AMBIENT_RMS_MPS2 = (0.01, 0.04)   # a standing girder's ambient vibration (RMS over its accelerometers)
 NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 0.004, "gap": 1.0e-6,
              "body_accel": 0.002}
 
@@ -506,13 +514,20 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
     n_amb = int(variant.get("ambient_s", 20.0) * 1000)
     t_amb = np.arange(1, n_amb + 1) * 1e-3
     names = list(gsens)
-    amb_hi = {k: np.zeros(n_amb) for k in names}
+    gw = Guideway(spans, cfg_true.numerics.n_elements_per_span)
     if effect == "ambient_excitation":
-        gw = Guideway(spans, cfg_true.numerics.n_elements_per_span)
         modal = gw.modes(cfg_true.numerics.mode_cutoff_hz, 2)
         d, a = _ambient_response(rng, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, tp["rms_mps2"])
-        for j, k in enumerate(names):
-            amb_hi[k] = d[:, j] if k.endswith("D") else a[:, j]
+    else:
+        # a standing line always rings (wind, traffic, ground): the ambient recording carries the true
+        # structure's modes (with a bearing pad or an attachment when the case has one) at a level of its
+        # own; a separate generator leaves the passes and the sensor noise drawn as before
+        rng_amb = np.random.default_rng([seed, 7])
+        modal = (_structural_effect_modes(gw, spans, effect, tp, cfg_true.numerics)
+                 or gw.modes(cfg_true.numerics.mode_cutoff_hz, cfg_true.numerics.min_modes_per_span))
+        level = variant.get("ambient_rms_mps2", float(rng_amb.uniform(*AMBIENT_RMS_MPS2)))
+        d, a = _ambient_response(rng_amb, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, level)
+    amb_hi = {k: d[:, j] if k.endswith("D") else a[:, j] for j, k in enumerate(names)}
     amb = {}
     for k, y in amb_hi.items():
         gname = "guideway_disp" if k.endswith("D") else "guideway_accel"

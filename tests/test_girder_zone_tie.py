@@ -65,17 +65,17 @@ def _pattern(shift: float, std: float) -> ModePattern:
 
 
 def test_zones_are_tried_where_the_mode_ratio_is_off_beyond_its_error():
-    assert zones_to_try(None, _pattern(0.07, 0.002))
-    assert not zones_to_try(None, _pattern(0.003, 0.002))         # 1.5 standard errors
-    assert not zones_to_try(None, None)                          # no ambient recording
-    assert zones_to_try(True, None) and not zones_to_try(False, _pattern(0.07, 0.002))
-    assert measured_first_modes(_spec(), _pattern(0.07, 0.002)) == {2: 22.5}
+    assert zones_to_try(None, (_pattern(0.07, 0.002),))
+    assert not zones_to_try(None, (_pattern(0.003, 0.002),))         # 1.5 standard errors
+    assert not zones_to_try(None, ())                          # no ambient recording
+    assert zones_to_try(True, ()) and not zones_to_try(False, (_pattern(0.07, 0.002),))
+    assert measured_first_modes(_spec(), (_pattern(0.07, 0.002),)) == {2: 22.5}
 
 
 def test_no_zone_where_the_ambient_recording_shows_a_mode_the_twin_lacks():
     # a stiffness change moves the span's modes but adds none: an extra vertical mode is an attachment's
     extra = ExtraMode(63.5, 0.02, 0.99, 0.99, "M2", peak_ratio=4.2, peak_needed=1.6)
-    assert not zones_to_try(None, _pattern(0.09, 0.002), (extra,))
+    assert not zones_to_try(None, (_pattern(0.09, 0.002),), (extra,))
     # a numerical pole (no spectral peak) or a torsional mode does not count
-    assert zones_to_try(None, _pattern(0.09, 0.002), (ExtraMode(30.2, 0.0005, 0.99, 0.99, "M2", 1.5, 1.6),))
-    assert zones_to_try(None, _pattern(0.09, 0.002), (ExtraMode(63.5, 0.02, 0.5, 0.1, "M2", 4.2, 1.6),))
+    assert zones_to_try(None, (_pattern(0.09, 0.002),), (ExtraMode(30.2, 0.0005, 0.99, 0.99, "M2", 1.5, 1.6),))
+    assert zones_to_try(None, (_pattern(0.09, 0.002),), (ExtraMode(63.5, 0.02, 0.5, 0.1, "M2", 4.2, 1.6),))

@@ -10,9 +10,10 @@ Method:
 
 1. identification: the suite's own, exactly as ``maglev-ros modes`` runs an ambient recording with
    its defaults (:func:`maglev_ros.modal.bands.plan_bands` + :func:`~maglev_ros.modal.bands.identify_bands`:
-   SSI-cov in bands of at most a decade, Whittle polish, the modes of all bands merged), on all
-   guideway accelerometers; nothing here identifies;
-2. matching: the instrumented span is the span holding most vertical guideway accelerometers; each
+   SSI-cov in bands of at most a decade, Whittle polish, the modes of all bands merged), on the
+   guideway accelerometers of the instrumented span (the span holding most vertical ones); nothing
+   here identifies;
+2. matching: each
    identified mode is compared with the twin's modes of that span (:func:`.model.guideway_modal`)
    by the distance the suite's clustering uses, ``|ln(f / f_twin)| + (1 - MAC)`` (MAC over the
    vertical accelerometers with a position, the twin's shape evaluated there). An identified mode
@@ -39,7 +40,7 @@ standard errors; mode 2 unbiased): the weighting by the std leaves a fifth of th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -147,6 +148,12 @@ class MeasuredDamping:
     source: str = ""
     identification: dict = field(default_factory=dict)
     extra_modes: tuple[ExtraMode, ...] = ()     # identified modes of the span the twin does not have
+    spans: tuple["MeasuredDamping", ...] = ()   # each instrumented span's own result (when more than one)
+
+    @property
+    def each_span(self) -> tuple["MeasuredDamping", ...]:
+        """Every instrumented span's own result, the span with most sensors first."""
+        return self.spans or ((self,) if self.span_id is not None else ())
 
     @property
     def twin_damping_ratio(self) -> float | None:
@@ -163,7 +170,8 @@ class MeasuredDamping:
                 "modes": [m.to_dict() for m in self.modes], "channels": list(self.channels),
                 "n_identified": int(self.n_identified), "source": self.source,
                 "identification": dict(self.identification),
-                "extra_modes": [m.to_dict() for m in self.extra_modes]}
+                "extra_modes": [m.to_dict() for m in self.extra_modes],
+                **({"spans": [d.to_dict() for d in self.spans]} if self.spans else {})}
 
 
 def _not_measured(design: float, reason: str, rec: Recording | None, **kw) -> MeasuredDamping:
@@ -171,8 +179,8 @@ def _not_measured(design: float, reason: str, rec: Recording | None, **kw) -> Me
                            source=rec.name if rec is not None else "", **kw)
 
 
-def _instrumented_span(rec: Recording, spec: ModelSpec) -> int | None:
-    """Index of the span holding most vertical guideway accelerometers (None: none on a span)."""
+def _instrumented_spans(rec: Recording, spec: ModelSpec) -> list[int]:
+    """Indices of the spans holding vertical guideway accelerometers, most accelerometers first."""
     counts = np.zeros(len(spec.spans), dtype=int)
     for n in _vertical(rec):
         x = rec.channels[n].position_m
@@ -180,7 +188,7 @@ def _instrumented_span(rec: Recording, spec: ModelSpec) -> int | None:
             if sp.start_m <= x <= sp.end_m:
                 counts[i] += 1
                 break
-    return int(np.argmax(counts)) if counts.size and counts.max() > 0 else None
+    return [int(i) for i in np.argsort(-counts, kind="stable") if counts[i] > 0]
 
 
 def _vertical(rec: Recording) -> list[str]:
@@ -190,10 +198,16 @@ def _vertical(rec: Recording) -> list[str]:
             and (sensors.get(n) or {}).get("direction", "vertical") != "lateral"]
 
 
-def _data(rec: Recording) -> tuple[np.ndarray, float, list[str]]:
-    """(n, channels) guideway accelerations on one clock, the rate and the names: the channels of
-    the most common length (one topic shares a rate), their mean rate over the record."""
-    names = rec.names("guideway_accel")
+def _span_channels(rec: Recording, span) -> list[str]:
+    """Guideway accelerometers on ``span`` (an accelerometer without a position belongs to none)."""
+    return [n for n in rec.names("guideway_accel")
+            if rec.channels[n].position_m is not None and span.start_m <= rec.channels[n].position_m <= span.end_m]
+
+
+def _data(rec: Recording, names: list[str] | None = None) -> tuple[np.ndarray, float, list[str]]:
+    """(n, channels) guideway accelerations (``names``, default all) on one clock, the rate and the
+    names: the channels of the most common length (one topic shares a rate), their mean rate."""
+    names = list(names) if names is not None else rec.names("guideway_accel")
     sizes = [rec.channels[n].values.size for n in names]
     size = max(set(sizes), key=sizes.count)
     names = [n for n, s in zip(names, sizes) if s == size]
@@ -268,21 +282,76 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec, below_hz: float 
     ``below_hz``: the band the accelerometers pass (an instrument's low-pass found on the passes,
     :mod:`.instrument_band`); a mode above it is not used, its damping being read through the filter's
     roll-off (a 100 Hz filter: the 91 Hz mode read 1.5 % for a true 2 %).
+    Every span with vertical accelerometers is measured on its own (``spans``); the twin's one ratio
+    comes from the measured modes of all of them, the other fields are the span with most sensors'.
     Never raises on a recording without modes: ``applied`` is then False with the reason."""
-    from maglev_ros.modal.bands import identify_bands, plan_bands
-    from maglev_ros.modal.stabilization import mac
-
-    modal = guideway_modal(spec)
     if ambient is None:
         d = spec.spans[0].props.damping_ratio if spec.spans else float("nan")
         return _not_measured(d, "no ambient recording: design damping kept", None)
-    span = _instrumented_span(ambient, spec)
-    design = spec.spans[span if span is not None else 0].props.damping_ratio
+    spans = _instrumented_spans(ambient, spec)
+    design = spec.spans[spans[0] if spans else 0].props.damping_ratio
     if ambient.kind != "ambient":
         return _not_measured(design, f"run.kind is {ambient.kind!r}, not 'ambient': design damping kept", ambient)
-    if span is None:
+    if not spans:
         return _not_measured(design, "no vertical guideway accelerometer on a span of the line: design damping kept",
                              ambient)
+    modal = guideway_modal(spec)
+    per = [_measure_span(ambient, spec, modal, i, below_hz) for i in spans]
+    if len(per) == 1:
+        return per[0]
+    return _combined(per)
+
+
+def _combined(per: list[MeasuredDamping]) -> MeasuredDamping:
+    """The first span's result with the one ratio of every span's measured modes (the twin damps all
+    spans alike) and each span's own result in ``spans``."""
+    first = per[0]
+    used = [m for d in per for m in d.modes if m.usable]
+    if not used:
+        why = "; ".join(f"span {d.span_id}: {d.reason}" for d in per)
+        return replace(first, damping_ratio=None, std_damping_ratio=None, applied=False, chi2=None,
+                       reason=f"no span's modes 1-2 measured ({why})", spans=tuple(per))
+    zeta, std, chi2, applied, reason = _one_ratio(used, first.design_damping_ratio,
+                                                  [d.span_id for d in per for m in d.modes if m.usable])
+    return replace(first, damping_ratio=zeta, std_damping_ratio=std, applied=applied, reason=reason, chi2=chi2,
+                   spans=tuple(per))
+
+
+def _one_ratio(used: list[ModeDamping], design: float, span_ids: list[str] | None = None
+               ) -> tuple[float, float, float | None, bool, str]:
+    """(ratio, std, chi2, applied, reason): the inverse-variance weighted mean of the measured modes'
+    damping, its std widened by the Birge ratio when they disagree, applied when it rejects ``design``."""
+    z = np.array([m.damping_ratio for m in used])
+    s = np.array([m.std_damping_ratio for m in used])
+    w = 1.0 / s ** 2
+    zeta = float(np.sum(w * z) / np.sum(w))
+    std = float(1.0 / math.sqrt(np.sum(w)))
+    chi2 = None
+    if len(used) > 1:
+        chi2 = float(np.sum(w * (z - zeta) ** 2))
+        std *= math.sqrt(max(chi2 / (len(used) - 1), 1.0))   # Birge ratio: the modes' disagreement widens it
+    where = [f"span {sid} " if sid else "" for sid in (span_ids or [None] * len(used))]
+    which = " and ".join(f"{w_}mode {m.twin_mode} {100 * m.damping_ratio:.2f} +- {100 * m.std_damping_ratio:.2f} %"
+                         for w_, m in zip(where, used))
+    alone = "" if len(used) != 1 or span_ids else f" (mode {3 - used[0].twin_mode} not measured)"
+    dev = (zeta - design) / std
+    # applied only when the data reject the design value
+    applied = abs(dev) > Z_REJECT
+    if applied:
+        reason = (f"measured {100 * zeta:.2f} +- {100 * std:.2f} % from {which}{alone}: "
+                  f"{abs(dev):.1f} std from the design's {100 * design:.2f} %, applied")
+    else:
+        reason = (f"measured {100 * zeta:.2f} +- {100 * std:.2f} % from {which}{alone}: within "
+                  f"{Z_REJECT:g} std of the design's {100 * design:.2f} %, design damping kept")
+    return zeta, std, chi2, bool(applied), reason
+
+
+def _measure_span(ambient: Recording, spec: ModelSpec, modal, span: int, below_hz: float | None) -> MeasuredDamping:
+    """Modes 1-2 of one span identified on its own accelerometers, matched to the twin's, one ratio."""
+    from maglev_ros.modal.bands import identify_bands, plan_bands
+    from maglev_ros.modal.stabilization import mac
+
+    design = spec.spans[span].props.damping_ratio
     sp = spec.spans[span]
     sel = np.flatnonzero(modal.span_index == span)
     sel = sel[np.argsort(modal.freq_hz[sel])]
@@ -290,8 +359,10 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec, below_hz: float 
         return _not_measured(design, f"the twin has fewer than {len(RAYLEIGH_MODES)} modes on span {sp.span_id}",
                              ambient, span_id=sp.span_id)
 
-    # 1. identification: the `maglev-ros modes` verb's path for an ambient record, its defaults
-    y, fs, names = _data(ambient)
+    # 1. identification: the `maglev-ros modes` verb's path for an ambient record, its defaults, on the
+    # span's own accelerometers: identical spans ring at one frequency, and with their sensors in the
+    # set the pole is repeated and never stabilizes (three decoupled spans: no mode identified)
+    y, fs, names = _data(ambient, _span_channels(ambient, sp))
     try:
         if not np.all(np.isfinite(y)):
             raise UserError("guideway accelerations hold NaN or inf")
@@ -374,31 +445,12 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec, below_hz: float 
         why = "; ".join(f"mode {m.twin_mode}: {m.reason}" for m in modes)
         return _not_measured(design, f"no twin mode 1-2 of span {sp.span_id} measured ({why}): design damping kept",
                              ambient, modes=modes, **common)
-    z = np.array([m.damping_ratio for m in used])
-    s = np.array([m.std_damping_ratio for m in used])
-    w = 1.0 / s ** 2
-    zeta = float(np.sum(w * z) / np.sum(w))
-    std = float(1.0 / math.sqrt(np.sum(w)))
-    chi2 = alpha = beta = None
+    zeta, std, chi2, applied, reason = _one_ratio(used, design)
+    alpha = beta = None
     if len(used) == 2:
-        chi2 = float(np.sum(w * (z - zeta) ** 2))
-        std *= math.sqrt(max(chi2, 1.0))        # Birge ratio: the modes' disagreement widens the std
         # the exact Rayleigh pair through both: zeta_j = a / (2 w_j) + b w_j / 2 (measured w_j)
         om = 2 * math.pi * np.array([m.freq_hz for m in used])
         a_mat = np.column_stack([1.0 / (2 * om), om / 2])
-        alpha, beta = (float(v) for v in np.linalg.solve(a_mat, z))
-    which = " and ".join(f"mode {m.twin_mode} {100 * m.damping_ratio:.2f} +- {100 * m.std_damping_ratio:.2f} %"
-                         for m in used)
-    alone = "" if len(used) == 2 else f" (mode {3 - used[0].twin_mode} not measured)"
-    dev = (zeta - design) / std
-
-    # 4. applied only when the data reject the design value
-    applied = abs(dev) > Z_REJECT
-    if applied:
-        reason = (f"measured {100 * zeta:.2f} +- {100 * std:.2f} % from {which}{alone}: "
-                  f"{abs(dev):.1f} std from the design's {100 * design:.2f} %, applied")
-    else:
-        reason = (f"measured {100 * zeta:.2f} +- {100 * std:.2f} % from {which}{alone}: within "
-                  f"{Z_REJECT:g} std of the design's {100 * design:.2f} %, design damping kept")
+        alpha, beta = (float(v) for v in np.linalg.solve(a_mat, np.array([m.damping_ratio for m in used])))
     return MeasuredDamping(zeta, std, float(design), modes, bool(applied), reason, sp.span_id, alpha, beta, chi2,
                            tuple(names), len(res.modes), ambient.name, ident, common.get("extra_modes", ()))

@@ -104,3 +104,11 @@ def mode_pattern(damping: MeasuredDamping, spec: ModelSpec, ambient: Recording |
     return ModePattern(sp.span_id, (sp.start_m, sp.end_m), tuple(damping.channels),
                        (float(ambient.t0_s), float(ambient.t1_s)), ambient.source, (f1, f2), (s1, s2), (t1, t2),
                        math.log((f2 / f1) / (t2 / t1)), std)
+
+
+def mode_patterns(damping: MeasuredDamping, spec: ModelSpec, ambient: Recording | None) -> tuple[ModePattern, ...]:
+    """Every instrumented span's mode ratio (:func:`mode_pattern` of each span's own measurement), most
+    standard errors first."""
+    out = [p for d in damping.each_span if (p := mode_pattern(d, spec, ambient)) is not None]
+    return tuple(sorted(out, key=lambda p: -p.n_sigma))
+

@@ -191,32 +191,37 @@ def base_spec_spans(spec: ModelSpec):
 
 
 def ambient_mode_findings(cal: Calibration, loc: Localization) -> list[dict]:
-    """Findings for the modes the ambient recording shows on the instrumented span that no twin mode
-    claims (:class:`..damping.ExtraMode`): vertical (left and right in phase) and clear of the spectral
-    estimate's scatter; a torsional one is reported, not modelled (the twin is vertical)."""
-    dm = cal.damping
-    if not dm.extra_modes or dm.span_id is None or loc.ambient is None:
+    """Findings for the modes the ambient recording shows on an instrumented span that no twin mode of
+    that span claims (:class:`..damping.ExtraMode`): vertical (left and right in phase) and clear of the
+    spectral estimate's scatter; a torsional one is reported, not modelled (the twin is vertical)."""
+    if loc.ambient is None:
         return []
-    sp = next(s for s in cal.base.spec.spans if s.span_id == dm.span_id)
     rec = loc.ambient.rec
     out = []
-    for m in dm.extra_modes:
-        if not m.in_the_data:
+    for dm in cal.damping.each_span:
+        sp = next((s for s in cal.base.spec.spans if s.span_id == dm.span_id), None)
+        if sp is None:
             continue
-        half = max(0.05, 2 * m.damping_ratio) * m.freq_hz
-        d = {"kind": "resonance", "frequency_hz": [float(m.freq_hz - half), float(m.freq_hz + half)],
-             "channels": list(dm.channels), "sensed_on": "guideway",
-             "location": {"position_m": [sp.start_m, sp.end_m], "span": sp.span_id},
-             "time_s": [float(rec.t0_s), float(rec.t1_s)], "twin_modes_in_band_hz": [], "score": float(m.peak_ratio),
-             "rank": 2, "source": AMBIENT_SOURCE, "mode_hz": float(m.freq_hz),
-             "explanation": (f"The ambient recording of span {sp.span_id} rings at {m.freq_hz:.1f} Hz "
-                             f"(damping {100 * m.damping_ratio:.1f} %, spectral peak {m.peak_ratio:.1f}x the local level), "
-                             f"where the twin has no mode of that span")}
-        if not m.vertical:
-            d["kind"] = "torsional_mode"
-            d["sensed_on"] = "guideway (left and right in opposite phase)"
-            d["explanation"] += ": left and right move in opposite phase, a torsional mode the vertical twin leaves out."
-        else:
-            d["explanation"] += ": something attached to the girder, or a mode the twin leaves out."
-        out.append(d)
+        for m in dm.extra_modes:
+            if m.in_the_data:
+                out.append(_ambient_mode_finding(m, dm, sp, rec))
     return out
+
+
+def _ambient_mode_finding(m, dm, sp, rec) -> dict:
+    half = max(0.05, 2 * m.damping_ratio) * m.freq_hz
+    d = {"kind": "resonance", "frequency_hz": [float(m.freq_hz - half), float(m.freq_hz + half)],
+         "channels": list(dm.channels), "sensed_on": "guideway",
+         "location": {"position_m": [sp.start_m, sp.end_m], "span": sp.span_id},
+         "time_s": [float(rec.t0_s), float(rec.t1_s)], "twin_modes_in_band_hz": [], "score": float(m.peak_ratio),
+         "rank": 2, "source": AMBIENT_SOURCE, "mode_hz": float(m.freq_hz),
+         "explanation": (f"The ambient recording of span {sp.span_id} rings at {m.freq_hz:.1f} Hz "
+                         f"(damping {100 * m.damping_ratio:.1f} %, spectral peak {m.peak_ratio:.1f}x the local level), "
+                         f"where the twin has no mode of that span")}
+    if not m.vertical:
+        d["kind"] = "torsional_mode"
+        d["sensed_on"] = "guideway (left and right in opposite phase)"
+        d["explanation"] += ": left and right move in opposite phase, a torsional mode the vertical twin leaves out."
+    else:
+        d["explanation"] += ": something attached to the girder, or a mode the twin leaves out."
+    return d

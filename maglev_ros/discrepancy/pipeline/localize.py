@@ -18,7 +18,7 @@ from maglev_ros.progress import NULL, Progress
 from ..evaluate import RecData, model_powers, prepare
 from ..instrument_band import apply_limits, common_limits
 from ..localize import Mismatch, ResidualMap, mismatches, persistent_mismatches, residual_map
-from ..mode_pattern import ModePattern, mode_pattern
+from ..mode_pattern import ModePattern, mode_patterns
 from ..recording import Recording
 from ..span_modes import detuned_spans, span_mode_shifts
 from .calibrate import Calibration
@@ -50,7 +50,12 @@ class Localization:
     persistent: list[Mismatch]
     detuned: list                      # span_modes.DetunedSpan
     ambient_map: ResidualMap | None = None   # the ambient recording against the calibrated twin
-    mode_pattern: ModePattern | None = None  # the instrumented span's mode ratio, ambient vs calibrated twin
+    mode_patterns: tuple[ModePattern, ...] = ()  # each instrumented span's mode ratio, ambient vs calibrated twin
+
+    @property
+    def mode_pattern(self) -> ModePattern | None:
+        """The span whose mode ratio is furthest off the twin's (in standard errors)."""
+        return self.mode_patterns[0] if self.mode_patterns else None
 
 
 def localize(cal: Calibration, ambient: Recording | None, config, progress: Progress = NULL) -> Localization:
@@ -80,5 +85,5 @@ def localize(cal: Calibration, ambient: Recording | None, config, progress: Prog
     detuned = detuned_spans(span_mode_shifts(cal.data.passes, spec))
     # the ratio of the span's first two modes on the ambient recording: E and density cancel in it
     # (reported with its own words; where flagged, the propose stage fits damaged zones of that span)
-    pattern = mode_pattern(cal.damping, spec, ambient)
-    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map, pattern)
+    patterns = mode_patterns(cal.damping, spec, ambient)
+    return Localization(rd_amb, drops, mp, maps, found, persistent, detuned, amb_map, patterns)

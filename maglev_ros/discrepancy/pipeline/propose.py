@@ -9,6 +9,7 @@ need no simulation (sensor faults, ambient vibration) are all fitted.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,9 +55,9 @@ class _ScreenOne:
 def propose(cal: Calibration, loc: Localization, config, progress: Progress = NULL,
             executor: Executor = SERIAL) -> Proposal:
     base, rd_train = cal.base, cal.data.rd_train
-    hyps = catalogue_hypotheses(base, rd_train, zones=zones_to_try(config.girder_zones, loc.mode_pattern,
-                                                                  cal.damping.extra_modes),
-                                measured_f1_hz=measured_first_modes(base.spec, loc.mode_pattern))
+    extra = [m for d in cal.damping.each_span for m in d.extra_modes]
+    hyps = catalogue_hypotheses(base, rd_train, zones=zones_to_try(config.girder_zones, loc.mode_patterns, extra),
+                                measured_f1_hz=measured_first_modes(base.spec, loc.mode_patterns))
     tried = []
     physics = [h for h in hyps if h.needs_sim]
     cheap = [h for h in hyps if not h.needs_sim]
@@ -86,9 +87,9 @@ def propose(cal: Calibration, loc: Localization, config, progress: Progress = NU
     return Proposal(physics, screened, phys, cheap, tried, span_of, flagged, unmeasured)
 
 
-def zones_to_try(setting: bool | None, pattern: ModePattern | None, extra_modes=()) -> bool:
-    """Damaged zones are fitted when asked (``setting``), or by default (None) when the measured span's
-    mode ratio is off the twin's beyond its standard error: a zone is told from a changed E only by
+def zones_to_try(setting: bool | None, patterns: Sequence[ModePattern] = (), extra_modes=()) -> bool:
+    """Damaged zones are fitted when asked (``setting``), or by default (None) when a measured span's
+    mode ratio is off the twin's beyond its standard error (``patterns``): a zone is told from a changed E only by
     how it changes one mode against the other, so without that evidence a zone fit only trades the
     twin's model error along the span (a clean span got a false 17 % zone loss). Not when the ambient
     recording shows a vertical mode of the span that the twin does not have (``extra_modes``,
@@ -99,15 +100,13 @@ def zones_to_try(setting: bool | None, pattern: ModePattern | None, extra_modes=
         return bool(setting)
     if any(m.in_the_data and m.vertical for m in extra_modes):
         return False
-    return pattern is not None and pattern.flagged
+    return any(p.flagged for p in patterns)
 
 
-def measured_first_modes(spec: ModelSpec, pattern: ModePattern | None) -> dict:
+def measured_first_modes(spec: ModelSpec, patterns: Sequence[ModePattern] = ()) -> dict:
     """Span index -> its first bending mode measured on the ambient recording (what a zone's E tie keeps)."""
     ids = [s.span_id for s in spec.spans]
-    if pattern is None or pattern.span_id not in ids:
-        return {}
-    return {ids.index(pattern.span_id): float(pattern.measured_hz[0])}
+    return {ids.index(p.span_id): float(p.measured_hz[0]) for p in patterns if p.span_id in ids}
 
 
 def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False,

@@ -174,6 +174,8 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
                         **({"instrument_band": [lim.to_dict() for lim in cal.prepare.band_limits.values()]}
                            if cal.prepare.band_limits else {}),
                         **({"mode_pattern": loc.mode_pattern.to_dict()} if loc.mode_pattern else {}),
+                        **({"mode_patterns": [p.to_dict() for p in loc.mode_patterns]}
+                           if len(loc.mode_patterns) > 1 else {}),
                         **({"with_found_physics": recal.to_dict()} if recal is not None else {})},
     }
     if disc:
@@ -328,19 +330,22 @@ def _mismatch_entries(found: Sequence[Mismatch], recs: Sequence[Recording | None
 
 def _pattern_entries(loc: Localization, cal: Calibration, final_spec: ModelSpec, ambient: Recording | None,
                      recs: Sequence[Recording | None]) -> list[dict]:
-    """The instrumented span's mode ratio as a mismatch when it is off the twin's, and whether the twin
+    """Each instrumented span's mode ratio as a mismatch when it is off the twin's, and whether the twin
     after (with the found physics) still has it off (``after_found_physics``)."""
-    p = loc.mode_pattern
-    if p is None or not p.flagged:
-        return []
-    m = p.to_mismatch()
-    e = {**m.to_dict(), "recording": _named(m.recording, recs), "time_from_start_s": None}
-    if final_spec is not cal.base.spec:
-        q = mode_pattern(cal.damping, final_spec, ambient)
-        if q is not None:
-            e["after_found_physics"] = {"ratio_shift": math.exp(q.log_ratio_shift) - 1, "standard_errors": q.n_sigma,
-                                        "explained": not q.flagged}
-    return [e]
+    out = []
+    for p in loc.mode_patterns:
+        if not p.flagged:
+            continue
+        m = p.to_mismatch()
+        e = {**m.to_dict(), "recording": _named(m.recording, recs), "time_from_start_s": None}
+        span = next((d for d in cal.damping.each_span if d.span_id == p.span_id), None)
+        if final_spec is not cal.base.spec and span is not None:
+            q = mode_pattern(span, final_spec, ambient)
+            if q is not None:
+                e["after_found_physics"] = {"ratio_shift": math.exp(q.log_ratio_shift) - 1,
+                                            "standard_errors": q.n_sigma, "explained": not q.flagged}
+        out.append(e)
+    return out
 
 
 def _maps_by_source(loc: Localization, final_spec: ModelSpec, maps_after: list) -> dict:

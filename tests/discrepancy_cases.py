@@ -339,6 +339,21 @@ def _aa_decimate(x: np.ndarray, variant: dict) -> np.ndarray:
     return y[1::2]
 
 
+def _modal_response(fq: np.ndarray, w: np.ndarray, z: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Modal displacements and accelerations (n, nm) under modal forces ``fq`` (n, nm) linear between
+    samples: each mode discretized exactly (first-order hold), so a 90 Hz mode keeps its frequency
+    (the trapezoidal rule at 1 ms rings it 2.5 % low)."""
+    q_out, a_out = np.empty_like(fq), np.empty_like(fq)
+    for j, (wj, zj) in enumerate(zip(w, z)):
+        a_mat = np.array([[0.0, 1.0], [-wj ** 2, -2 * zj * wj]])
+        c_mat = np.array([[1.0, 0.0], [-wj ** 2, -2 * zj * wj]])
+        ad, bd, cd, dd, _ = signal.cont2discrete((a_mat, np.array([[0.0], [1.0]]), c_mat, np.array([[0.0], [1.0]])),
+                                                 dt, method="foh")
+        _, y, _ = signal.dlsim((ad, bd, cd, dd, dt), fq[:, j])
+        q_out[:, j], a_out[:, j] = y[:, 0], y[:, 1]
+    return q_out, a_out
+
+
 def _ambient_response(rng, modal: ModalBasis, spans, sensors_x, n: int, dt: float, level: float):
     """Guideway (disp, accel) at sensors from random coloured point forces, 2 random points per span."""
     pts = np.concatenate([s.start_m + rng.uniform(0.1, 0.9, 2) * s.length_m for s in spans])
@@ -348,17 +363,7 @@ def _ambient_response(rng, modal: ModalBasis, spans, sensors_x, n: int, dt: floa
                        for _ in pts], axis=1)
     phi = modal.shapes_at(pts)                     # (np, nm)
     fq = forces @ phi                               # (n, nm)
-    w, z = modal.omega_rad_s, modal.damping_ratio
-    h = dt
-    khat = w ** 2 + 2 * z * w * (2 / h) + 4 / h ** 2
-    q = np.zeros(w.size); qd = np.zeros_like(q); qdd = np.zeros_like(q)
-    Q = np.empty((n, w.size)); A = np.empty_like(Q)
-    for i in range(n):
-        qn = (fq[i] + (4 / h ** 2) * q + (4 / h) * qd + qdd + 2 * z * w * ((2 / h) * q + qd)) / khat
-        qdd = (4 / h ** 2) * (qn - q) - (4 / h) * qd - qdd
-        qd = (2 / h) * (qn - q) - qd
-        q = qn
-        Q[i] = q; A[i] = qdd
+    Q, A = _modal_response(fq, modal.omega_rad_s, modal.damping_ratio, dt)
     S = modal.shapes_at(np.asarray(sensors_x))
     disp, acc = Q @ S.T, A @ S.T
     scale = level / (np.std(acc[n // 4:]) + 1e-30)   # level = RMS accel over the sensors

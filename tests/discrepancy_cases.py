@@ -408,11 +408,9 @@ NOISE_STD = {"guideway_accel": 0.004, "guideway_disp": 1.5e-6, "vehicle_accel": 
              "body_accel": 0.002}
 
 
-def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, speeds=(22.0, 30.0),
-              split: str = "tune", variant: dict | None = None, design_error: dict | None = None,
-              n_spans: int = N_SPANS) -> Case:
-    rng = np.random.default_rng(seed)
-    variant = dict(variant or {})
+def _true_line(rng, variant: dict, design_error: dict | None, effect: str | None, tp: dict, n_spans: int):
+    """(true twin config, design errors, the design block, the true spans): the design is off the truth
+    by ``design_error`` (drawn when None); a girder stiffness loss is built into its span."""
     cfg_true = twin_config()
     cfg_true = replace(cfg_true, numerics=replace(cfg_true.numerics,
                                                   n_elements_per_span=variant.get("n_el", 24)))
@@ -424,11 +422,60 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
               "levitation": {"kp_a_per_m": lev.kp_a_per_m / (1 + derr["kp"])}}
     md_line = {"spans": [{"id": f"S{i + 1}", "start_m": i * L_SPAN, "length_m": L_SPAN} for i in range(n_spans)]}
     spans = list(line_spans(md_line, cfg_true))
-    tp = dict(params)
     if effect == "girder_stiffness_loss":
         i = tp["span_index"]
         spans[i] = replace(spans[i], props=replace(spans[i].props,
                                                    youngs_modulus_pa=spans[i].props.youngs_modulus_pa * (1 - tp["loss"])))
+    return cfg_true, derr, design, spans
+
+
+def make_ambient(effect: str | None, params: dict, *, seed: int, n_spans: int = N_SPANS,
+                 design_error: dict | None = None, variant: dict | None = None) -> tuple[Recording, ModalBasis]:
+    """The ambient recording of a case alone (no passes simulated) and the true guideway modes it rings at."""
+    rng = np.random.default_rng(seed)
+    variant, tp = dict(variant or {}), dict(params)
+    cfg_true, _, design, spans = _true_line(rng, variant, design_error, effect, tp, n_spans)
+    return _ambient_recording(rng, seed, "ambient", metadata(design, "ambient", 0.0, n_spans), spans, cfg_true,
+                              effect, tp, variant)
+
+
+def _ambient_recording(rng, seed: int, case_id: str, md_amb: dict, spans, cfg_true, effect: str | None, tp: dict,
+                       variant: dict) -> tuple[Recording, ModalBasis]:
+    """The ambient recording (guideway sensors only) and the true modes it rings at."""
+    gsens = {k: s["position_m"] for k, s in md_amb["sensors"].items()}
+    noise_scale, colour = variant.get("noise_scale", 1.0), variant.get("noise_colour", "white")
+    n_amb = int(variant.get("ambient_s", 20.0) * 1000)
+    t_amb = np.arange(1, n_amb + 1) * 1e-3
+    names = list(gsens)
+    gw = Guideway(spans, cfg_true.numerics.n_elements_per_span)
+    if effect == "ambient_excitation":
+        modal = gw.modes(cfg_true.numerics.mode_cutoff_hz, 2)
+        d, a = _ambient_response(rng, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, tp["rms_mps2"])
+    else:
+        # a standing line always rings (wind, traffic, ground): the ambient recording carries the true
+        # structure's modes (with a bearing pad or an attachment when the case has one) at a level of its
+        # own; a separate generator leaves the passes and the sensor noise drawn as before
+        rng_amb = np.random.default_rng([seed, 7])
+        modal = (_structural_effect_modes(gw, spans, effect, tp, cfg_true.numerics)
+                 or gw.modes(cfg_true.numerics.mode_cutoff_hz, cfg_true.numerics.min_modes_per_span))
+        level = variant.get("ambient_rms_mps2", float(rng_amb.uniform(*AMBIENT_RMS_MPS2)))
+        d, a = _ambient_response(rng_amb, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, level)
+    amb_hi = {k: d[:, j] if k.endswith("D") else a[:, j] for j, k in enumerate(names)}
+    amb = {}
+    for k, y in amb_hi.items():
+        gname = "guideway_disp" if k.endswith("D") else "guideway_accel"
+        y = _aa_decimate(y, variant)
+        amb[k] = (t_amb[1::2], y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour))
+    return recording_from_arrays(md_amb, amb, None, source=f"{case_id}/ambient"), modal
+
+
+def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, speeds=(22.0, 30.0),
+              split: str = "tune", variant: dict | None = None, design_error: dict | None = None,
+              n_spans: int = N_SPANS) -> Case:
+    rng = np.random.default_rng(seed)
+    variant = dict(variant or {})
+    tp = dict(params)
+    cfg_true, derr, design, spans = _true_line(rng, variant, design_error, effect, tp, n_spans)
     noise_scale = variant.get("noise_scale", 1.0)
     colour = variant.get("noise_colour", "white")
     md_pass = [metadata(design, "pass", v, n_spans, variant.get("body_sensors", True)) for v in speeds]
@@ -515,30 +562,7 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
         spd = np.interp(pos_t, t_hi, res.speed_mps)
         passes.append(recording_from_arrays(md, {k: (t, y) for k, y in sig.items()}, (pos_t, pos, spd),
                                             source=f"{case_id}/pass_{v:g}"))
-    # ambient recording (guideway only)
-    n_amb = int(variant.get("ambient_s", 20.0) * 1000)
-    t_amb = np.arange(1, n_amb + 1) * 1e-3
-    names = list(gsens)
-    gw = Guideway(spans, cfg_true.numerics.n_elements_per_span)
-    if effect == "ambient_excitation":
-        modal = gw.modes(cfg_true.numerics.mode_cutoff_hz, 2)
-        d, a = _ambient_response(rng, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, tp["rms_mps2"])
-    else:
-        # a standing line always rings (wind, traffic, ground): the ambient recording carries the true
-        # structure's modes (with a bearing pad or an attachment when the case has one) at a level of its
-        # own; a separate generator leaves the passes and the sensor noise drawn as before
-        rng_amb = np.random.default_rng([seed, 7])
-        modal = (_structural_effect_modes(gw, spans, effect, tp, cfg_true.numerics)
-                 or gw.modes(cfg_true.numerics.mode_cutoff_hz, cfg_true.numerics.min_modes_per_span))
-        level = variant.get("ambient_rms_mps2", float(rng_amb.uniform(*AMBIENT_RMS_MPS2)))
-        d, a = _ambient_response(rng_amb, modal, spans, [gsens[k] for k in names], n_amb, 1e-3, level)
-    amb_hi = {k: d[:, j] if k.endswith("D") else a[:, j] for j, k in enumerate(names)}
-    amb = {}
-    for k, y in amb_hi.items():
-        gname = "guideway_disp" if k.endswith("D") else "guideway_accel"
-        y = _aa_decimate(y, variant)
-        amb[k] = (t_amb[1::2], y + _noise(rng, y.size, NOISE_STD[gname] * noise_scale, colour))
-    ambient = recording_from_arrays(md_amb, amb, None, source=f"{case_id}/ambient")
+    ambient, _ = _ambient_recording(rng, seed, case_id, md_amb, spans, cfg_true, effect, tp, variant)
     truth = {"effect": effect, "category": CATEGORY.get(effect) if effect else None, "params": tp,
              "design_error": derr, "location": _truth_location(effect, tp), "irregularity": irr_info}
     return Case(case_id, effect, float(params.get("magnitude", 0.0)), truth, ambient, passes, split, variant)

@@ -196,7 +196,9 @@ class WhittlePolish:
                 d, nb = 1, per.size
             fb = b.freq_hz[:nb * d].reshape(nb, d).mean(axis=1)
             pb = per[:nb * d].reshape(nb, d).mean(axis=1)
-            res = self._fit_band(fb, pb, fs_hz, r, list(b.modes), freq, zeta, d)
+            # a trial step far off the pole overflows; its likelihood is then inf and the step refused
+            with np.errstate(over="ignore", invalid="ignore"):
+                res = self._fit_band(fb, pb, fs_hz, r, list(b.modes), freq, zeta, d)
             if res is None:
                 out.append(keep)
                 continue

@@ -242,15 +242,19 @@ def _extra_modes(res, d_ij: np.ndarray, m_ij: np.ndarray, twin_f: np.ndarray, re
             tot = float(np.sum(np.abs(lft) ** 2 + np.abs(rgt) ** 2))
             share = float(np.sum(np.abs(lft + rgt) ** 2) / (2 * tot)) if tot > 0 else None
         m = res.modes[i]
-        ratio, needed = _spectral_peak(rec, vert, float(m.frequency_hz))
+        ratio, needed = _spectral_peak(rec, vert, float(m.frequency_hz), np.delete(f_id, i))
         out.append(ExtraMode(float(m.frequency_hz), float(m.damping_ratio), float(np.max(m_ij[i])) if m_ij.size else 0.0,
                              share, str(m.id), ratio, needed))
     return tuple(out)
 
 
-def _spectral_peak(rec: Recording, names: list[str], f_hz: float) -> tuple[float, float]:
-    """(largest PSD within +-1 % of ``f_hz`` over the median PSD within +-10 %, best channel; the
-    ratio a Welch estimate of K segments reaches by chance: 1 + 3 / sqrt(K))."""
+def _spectral_peak(rec: Recording, names: list[str], f_hz: float, others_hz=()) -> tuple[float, float]:
+    """(largest PSD within +-1 % of ``f_hz`` over the higher of its two flanks' median PSDs, 3-10 %
+    below and above, best channel; the ratio a Welch estimate of K segments reaches by chance:
+    1 + 3 / sqrt(K)). A mode is a local maximum of its own: on the skirt of a stronger neighbour (a
+    pole an identification band places off a mode just beyond its edge) the flank toward it is
+    higher; with another identified mode (``others_hz``) closer than the flanks begin, the estimate
+    cannot tell the two peaks apart and the mode is not confirmed (ratio 0)."""
     from scipy.signal import welch
     best, needed = 0.0, np.inf
     for n in names:
@@ -259,12 +263,20 @@ def _spectral_peak(rec: Recording, names: list[str], f_hz: float) -> tuple[float
         nper = int(min(8192, max(256, x.size // 8)))
         f, p = welch(x, c.sample_rate_hz, nperseg=nper)
         df = f[1] - f[0]
-        near = np.abs(f - f_hz) <= max(0.01 * f_hz, 2 * df)
-        local = np.abs(f - f_hz) <= max(0.1 * f_hz, 10 * df)
-        if not near.any() or np.median(p[local]) <= 0:
+        d = np.abs(f - f_hz)
+        gap = max(0.03 * f_hz, 3 * df)
+        if any(abs(g - f_hz) < gap for g in others_hz):
+            continue                                   # another mode inside the gap: not resolved here
+        near = d <= max(0.01 * f_hz, 2 * df)
+        flank = (d >= gap) & (d <= max(0.1 * f_hz, 10 * df))
+        left, right = flank & (f < f_hz), flank & (f > f_hz)
+        if not near.any() or not left.any() or not right.any():
+            continue
+        level = max(float(np.median(p[left])), float(np.median(p[right])))
+        if level <= 0:
             continue
         k = max(1, 2 * x.size // nper - 1)            # segments at 50 % overlap
-        best = max(best, float(p[near].max() / np.median(p[local])))
+        best = max(best, float(p[near].max() / level))
         needed = 1.0 + 3.0 / math.sqrt(k)
     return best, (needed if np.isfinite(needed) else 0.0)
 

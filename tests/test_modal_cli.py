@@ -22,6 +22,11 @@ def test_modes_ambient_bag_json_and_plot(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert doc["schema"] == "maglev-modes/1"
     assert doc["source"]["run_kind"] == "ambient"
+    # the metadata places the sections on three spans, but one structure carries them all: they move
+    # together (coherent), so they are identified together only
+    grouping = doc["source"]["span_groups"]
+    assert not grouping["identified_apart"] and grouping["weighted_coherence"] > 0.9
+    assert "channel_groups" not in doc["source"]
     from maglev_ros.modal.ssi_cov import Mode
     modes = [Mode(m["id"], m["frequency_hz"], m["damping_ratio"], m["mode_shape"], m["mpc"],
                   m.get("mpd", 0.0), m["std_frequency_hz"], m["std_damping_ratio"])

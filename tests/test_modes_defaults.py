@@ -163,3 +163,33 @@ def test_merge_keeps_one_estimate_of_a_mode_found_in_two_bands():
     # 9.2 Hz lies inside the low band's core, 9.25 Hz in the high band's overlap (outside its core)
     assert f == [3.0, 9.2, 9.3, 40.0]
     assert [m.id for m in res.modes] == ["M1", "M2", "M3", "M4"]
+
+
+# ------------------------------------------------------------- identical spans, each instrumented
+def test_identical_spans_each_with_sensors_get_their_own_modes(tmp_path, capsys):
+    """Three decoupled spans of one design ring at one frequency: the joint identification's poles are
+    repeated and never stabilize. Each span's sensors are identified alone too; the reference is the
+    generator's own FE eigenproblem of the true spans (tests/discrepancy_cases.py)."""
+    from discrepancy_cases import make_ambient, write_recording_bag
+    rec, modal = make_ambient(None, {}, seed=11, design_error={"E": 0.0, "kb": 0.0, "kp": 0.0},
+                              variant={"ambient_rms_mps2": 0.02})
+    bag = tmp_path / "three_spans"
+    write_recording_bag(rec, bag)
+    doc, out = _modes(bag, tmp_path, capsys)
+    grouping = doc["source"]["span_groups"]
+    assert grouping["identified_apart"] and grouping["weighted_coherence"] <= grouping["chance_99"]
+    groups = doc["source"]["channel_groups"]
+    assert [g["span"] for g in groups] == ["S1", "S2", "S3"]
+    spans = rec.metadata["line"]["spans"]
+    for i, g in enumerate(groups):
+        mine = [m for m in doc["modes"] if max(abs(m["mode_shape"][c]) for c in g["channels"]) == 1.0]
+        # the shape was measured on the span's own sensors: zero elsewhere
+        for m in mine:
+            assert all(m["mode_shape"][c] == 0.0 for c in m["mode_shape"] if c not in g["channels"])
+        f_true = np.sort(modal.freq_hz[modal.span_index == i])[:2]
+        f_id = np.array([m["frequency_hz"] for m in mine])
+        for f0 in f_true:
+            k = int(np.argmin(np.abs(f_id - f0)))
+            assert abs(f_id[k] - f0) <= max(3 * mine[k]["std_frequency_hz"], 0.002 * f0), (spans[i]["id"], f0)
+            assert abs(mine[k]["damping_ratio"] - 0.02) <= 3 * mine[k]["std_damping_ratio"]
+    assert "no stable modes found" not in out

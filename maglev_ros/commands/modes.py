@@ -9,7 +9,8 @@ the bag has it, else from the response envelope.
 With no options the settings follow the recording (:mod:`maglev_ros.modal.bands`): modes are
 looked for from 1 Hz (raised for a short record) to 0.4 x the sampling rate, in bands of at
 most a decade, each decimated and given block rows and orders by stated rules; the modes of all
-bands are merged. Given options override. Prints the settings and a table; ``--json`` writes
+bands are merged. Given options override. Accelerometers on several spans that move apart (their
+coherence at chance level) are identified span by span as well (:mod:`maglev_ros.modal.groups`). Prints the settings and a table; ``--json`` writes
 the ``maglev-modes/1`` document (settings under ``source.settings``); ``--plot`` writes the
 stabilization diagram over the spectrum.
 """
@@ -110,10 +111,58 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         read, health = read_checked_windows(
             r, [TOPIC_ACCEL], [TOPIC_POSITION] if TOPIC_POSITION in r.topics else [],
             sensor_map=kind == "pass")
-        out = _identify_streamed(path, r, md, kind, read[TOPIC_ACCEL], read.get(TOPIC_POSITION),
-                                 fmin_hz, fmax_hz, block_rows, max_order, decimate_to_hz, window,
-                                 scale_channels)
+        args = (path, r, md, kind, read[TOPIC_ACCEL], read.get(TOPIC_POSITION), fmin_hz, fmax_hz, block_rows,
+                max_order, decimate_to_hz, window, scale_channels)
+        out = _identify_streamed(*args)
+        groups = _span_groups(md, out.info["channels"])
+        if len(groups) > 1:
+            out = _with_span_groups(out, groups, args)
     return BagModes(out.result, out.info, out.plan, health)
+
+
+# at most this many samples decide whether spans move apart (a few minutes at 1 kHz: Welch has dozens
+# of segments; the bag may be longer than memory)
+GROUP_TEST_SAMPLES = 2 ** 18
+
+
+def _with_span_groups(out: BagModes, groups, args) -> BagModes:
+    """Each span's sensors identified alone too when the spans move apart (:mod:`maglev_ros.modal.groups`:
+    identical spans ring at one frequency and their joint poles never stabilize)."""
+    from maglev_ros.bag_windows import read_window
+    from maglev_ros.modal.groups import independent_groups, merge_group_modes
+    r, acc = args[1], args[4]
+    chans = out.info["channels"]
+    t0 = acc.first_time_s
+    win = out.info.get("free_decay_window")
+    lo = t0 + (win["start_s"] if win else 0.0)
+    hi = min(t0 + win["stop_s"] if win else np.inf, lo + GROUP_TEST_SAMPLES / float(acc.sample_rate_hz))
+    cd = read_window(r, acc, lo, hi)
+    cols = [[list(cd.channels).index(n) for n in names] for _, names in groups]
+    apart, evidence = independent_groups(np.asarray(cd.data, dtype=float), float(cd.sample_rate_hz), cols)
+    out.info["span_groups"] = {"spans": [sid for sid, _ in groups], "identified_apart": apart, **evidence}
+    if not apart:
+        return out
+    parts = [(names, _identify_streamed(*args, cols=[chans.index(n) for n in names]).result) for _, names in groups]
+    merged, added = merge_group_modes(out.result, parts)
+    out.info["channel_groups"] = [{"span": sid, "channels": list(names), "modes_added": a}
+                                  for (sid, names), a in zip(groups, added)]
+    return BagModes(merged, out.info, out.plan)
+
+
+def _span_groups(md, channels) -> list[tuple[str, list[str]]]:
+    """(span id, its channels) for every span the metadata places accelerometers on, in line order."""
+    if md is None:
+        return []
+    groups: dict[str, list[str]] = {}
+    for ch in channels:
+        s = md.sensors.get(ch)
+        span = s.span if s is not None else None
+        if s is not None and not span and s.position_m is not None:      # placed by position alone
+            span = next((sp.id for sp in md.spans if sp.start_m <= s.position_m <= sp.end_m), None)
+        if span:
+            groups.setdefault(span, []).append(ch)
+    order = [sp.id for sp in md.spans]
+    return sorted(groups.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order))
 
 
 def _channel_scaling(units, scale_channels) -> tuple[bool, str]:
@@ -128,11 +177,11 @@ def _channel_scaling(units, scale_channels) -> tuple[bool, str]:
 
 
 def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows, max_order,
-                       decimate_to_hz, window, scale_channels) -> BagModes:
+                       decimate_to_hz, window, scale_channels, cols=None) -> BagModes:
     """identify_modes' processing of the accelerations ``acc`` (a CheckedTopic of the open bag
-    ``r``): every pass reads them in windows (:mod:`maglev_ros.bag_windows`) and the
-    identification sums over chunks (:mod:`maglev_ros.modal.chunked`), with the whole-array
-    path's results (:func:`_identify_whole`)."""
+    ``r``; only its columns ``cols`` when given): every pass reads them in windows
+    (:mod:`maglev_ros.bag_windows`) and the identification sums over chunks
+    (:mod:`maglev_ros.modal.chunked`), with the whole-array path's results (:func:`_identify_whole`)."""
     from maglev_ros.bag_windows import iter_windows, read_window
     from maglev_ros.modal.bands import plan_bands
     from maglev_ros.modal.chunked import TopicChunks, identify_bands_chunked
@@ -142,12 +191,14 @@ def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows
     channels, units = acc.channels, acc.units
     n = acc.n_samples
     use_decay = window == "free-decay" or (window == "auto" and kind == "pass")
-    end = _span_end_m(md, channels) if md is not None else None
+    end = _span_end_m(md, channels) if md is not None else None      # all channels: one window for all
     if use_decay and not (pos is not None and "position_m" in pos.channels and end is not None):
         # the envelope rule needs each channel's median over the record: read it whole
         cd = read_window(r, acc, -np.inf, np.inf)
         return _identify_whole(path, cd, md, kind, pos, fmin_hz, fmax_hz, block_rows, max_order,
-                               decimate_to_hz, window, scale_channels)
+                               decimate_to_hz, window, scale_channels, cols)
+    if cols is not None:
+        channels, units = [channels[c] for c in cols], [units[c] for c in cols]
     info = {"bag": str(path), "topic": TOPIC_ACCEL, "run_kind": kind, "fs_hz": fs,
             "n_samples": int(n), "channels": list(channels)}
     start, stop = 0, n
@@ -168,14 +219,19 @@ def _identify_streamed(path, r, md, kind, acc, pos, fmin_hz, fmax_hz, block_rows
     except UserError as e:
         raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
-    res, _ = identify_bands_chunked(TopicChunks(r, acc, start, stop), fs, plan, channels)
+    chunks = TopicChunks(r, acc, start, stop)
+    if cols is not None:
+        from maglev_ros.modal.groups import ColumnChunks
+        chunks = ColumnChunks(chunks, cols)
+    res, _ = identify_bands_chunked(chunks, fs, plan, channels)
     return BagModes(res, info, plan)
 
 
 def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_rows=None,
                     max_order=None, decimate_to_hz=None, window="auto",
-                    scale_channels=None) -> BagModes:
-    """identify_modes on the whole topic ``cd`` in memory (as read, health-checked)."""
+                    scale_channels=None, cols=None) -> BagModes:
+    """identify_modes on the whole topic ``cd`` in memory (as read, health-checked; only its
+    columns ``cols`` when given, the free-decay window chosen on all of them)."""
     from maglev_ros.modal.bands import identify_bands, plan_bands
     from maglev_ros.modal.free_decay import select_free_decay
 
@@ -197,7 +253,11 @@ def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_r
         win = select_free_decay(data, fs, time_s=t, **kw)
         info["free_decay_window"] = win.to_dict()
         data = data[win.start_index:win.stop_index]
-    scale_channels, scale_src = _channel_scaling(cd.units, scale_channels)
+    names, units = list(cd.channels), list(cd.units)
+    if cols is not None:
+        data, names, units = data[:, cols], [names[c] for c in cols], [units[c] for c in cols]
+        info["channels"] = names
+    scale_channels, scale_src = _channel_scaling(units, scale_channels)
     try:
         plan = plan_bands(fs, data.shape[0], data.shape[1], stationary=not use_decay,
                           fmin_hz=fmin_hz, fmax_hz=fmax_hz, block_rows=block_rows,
@@ -206,7 +266,7 @@ def _identify_whole(path, cd, md, kind, pos, fmin_hz=None, fmax_hz=None, block_r
     except UserError as e:
         raise UserError(f"{path} ({TOPIC_ACCEL}): {e}") from None
     info["settings"] = plan.to_dict()
-    res, _ = identify_bands(data, fs, plan, cd.channels)
+    res, _ = identify_bands(data, fs, plan, names)
     return BagModes(res, info, plan)
 
 

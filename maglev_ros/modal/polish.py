@@ -300,6 +300,8 @@ class WhittlePolish:
         if not self.own_tilt:
             jac[3] = 0.0
         fim = dof * (jac @ jac.T)
+        if not np.all(np.isfinite(fim)):
+            return None                             # an overflowed Jacobian: LAPACK's SVD may never return on it
         cov = np.linalg.pinv(fim)
         f1, z1 = float(np.exp(th[0])), float(np.exp(th[1]))
         sf = f1 * float(np.sqrt(max(cov[0, 0], 0.0)))

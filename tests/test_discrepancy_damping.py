@@ -128,3 +128,28 @@ def test_a_mode_the_twin_lacks_is_found_in_the_ambient_recording(case):
         return
     f_true = attached[0]["parameters"]["coupled_mode_hz"]
     assert len(seen) == 1 and seen[0].freq_hz == pytest.approx(f_true, rel=0.02)
+
+
+def _mode(z, s):
+    from maglev_ros.discrepancy.damping import ModeDamping
+    return ModeDamping(1, 23.0, 0.02, 23.0, z, s, None, 1.0, "M1", "matched", std_freq_hz=0.05)
+
+
+def test_a_mode_off_the_others_beyond_chance_is_left_out():
+    """Monte Carlo: six modes drawn about one ratio with their own stds are all kept but in about
+    alpha = 0.1 % of draws; a spurious narrow pole (0.35 +- 0.02 % beside five at 2 %) is left out and
+    the ratio is the other five's weighted mean."""
+    from maglev_ros.discrepancy.damping import _one_ratio, _outliers
+    rng = np.random.default_rng(5)
+    s = np.array([0.0033, 0.0019, 0.0030, 0.0017, 0.0003, 0.0017])
+    trials = 4000
+    dropped = sum(bool(_outliers([_mode(0.02 + e, si) for e, si in zip(rng.normal(0, s), s)]))
+                  for _ in range(trials))
+    assert dropped / trials <= 0.004          # alpha 0.1 %, with a 3-sigma binomial allowance
+    used = [_mode(z, si) for z, si in zip((0.0235, 0.0219, 0.0199, 0.0203, 0.0035, 0.0197), s[:4].tolist()
+                                          + [0.00025, 0.0017])]
+    zeta, std, _, applied, reason, out = _one_ratio(used, 0.02)
+    assert out == [4] and "left out" in reason and not applied
+    keep = [m for i, m in enumerate(used) if i != 4]
+    w = np.array([1 / m.std_damping_ratio ** 2 for m in keep])
+    assert zeta == pytest.approx(np.sum(w * [m.damping_ratio for m in keep]) / np.sum(w))

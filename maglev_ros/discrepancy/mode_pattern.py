@@ -87,7 +87,7 @@ def mode_pattern(damping: MeasuredDamping, spec: ModelSpec, ambient: Recording |
     and 2 not both matched with standard errors)."""
     if ambient is None or damping.span_id is None:
         return None
-    modes = {m.twin_mode: m for m in damping.modes if m.freq_hz is not None}
+    modes = {m.twin_mode: m for m in damping.modes if m.freq_hz is not None and m.consistent}
     if not {1, 2} <= set(modes) or any(not (modes[k].std_freq_hz or 0) > 0 for k in (1, 2)):
         return None
     ids = [s.span_id for s in spec.spans]

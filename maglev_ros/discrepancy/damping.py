@@ -22,7 +22,10 @@ Method:
 3. one ratio: a single Rayleigh ratio gives both modes the same damping, so the ratio that
    reproduces the two measured ones as well as one ratio can is their inverse-variance weighted
    mean (weighted least squares); its std is the weighted mean's, scaled by the Birge ratio
-   sqrt(chi^2 / 1) when the two modes disagree by more than their own stds. The exact Rayleigh
+   sqrt(chi^2 / dof) when the modes disagree by more than their own stds. Every instrumented span
+   is measured this way on its own sensors and the one ratio comes from all their modes; with three
+   modes or more, a mode off the others beyond chance (Bonferroni at 0.1 %) is left out and marked
+   (a spurious narrow pole would carry the mean by its small std alone). The exact Rayleigh
    pair (a, b) through both measured modes is reported too (the twin cannot take it: one ratio);
 4. use: the measured ratio replaces the design's only when it differs from it by more than
    ``Z_REJECT`` of its std; otherwise the design is kept (``applied`` False, with the reason).

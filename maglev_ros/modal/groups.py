@@ -117,11 +117,9 @@ def merge_group_modes(joint: ModalResult, parts: Sequence[tuple[Sequence[str], M
         lab = np.array([label.get((g, int(c)), -1) if c >= 0 else -1 for c in st.cluster], dtype=int)
         tables.append(PoleTable(st.order, st.frequency_hz, st.damping_ratio, shapes, st.mpc, st.stable, lab))
     table = None
-    if tables and all(t.shapes is not None for t in tables):
-        table = PoleTable(*(np.concatenate([getattr(t, f) for t in tables])
-                            for f in ("order", "frequency_hz", "damping_ratio", "shapes", "mpc", "stable", "cluster")))
-    elif tables:
-        table = PoleTable(*(np.concatenate([getattr(t, f) for t in tables]) if f != "shapes" else None
+    if tables:
+        with_shapes = all(t.shapes is not None for t in tables)
+        table = PoleTable(*(np.concatenate([getattr(t, f) for t in tables]) if f != "shapes" or with_shapes else None
                             for f in ("order", "frequency_hz", "damping_ratio", "shapes", "mpc", "stable", "cluster")))
     out = replace(joint, modes=tuple(replace(m, id=f"M{i + 1}") for i, (m, _, _) in enumerate(modes)),
                   stabilization=table, complex_shapes=tuple(phi for _, phi, _ in modes),

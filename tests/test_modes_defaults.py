@@ -165,6 +165,29 @@ def test_merge_keeps_one_estimate_of_a_mode_found_in_two_bands():
     assert [m.id for m in res.modes] == ["M1", "M2", "M3", "M4"]
 
 
+def test_merge_drops_the_edge_copy_of_a_mode_the_next_band_owns():
+    """A mode just beyond a band's search edge leaves a copy in that band's overlap margin, off by the
+    edge (the band's own estimate is outside its core); the band whose core holds it has the mode: one
+    estimate, the owner's. A margin mode with another shape is a mode of its own and stays."""
+    from maglev_ros.modal.bands import MARGIN, Band, BandResult, merge_band_results
+    from maglev_ros.modal.ssi_cov import ModalResult, Mode
+
+    def result(modes):      # (frequency_hz, shape)
+        ms = tuple(Mode(f"M{k + 1}", f, 0.01, {"a": s[0], "b": s[1]}, 1.0, 0.0, 0.001, 0.001)
+                   for k, (f, s) in enumerate(modes))
+        return ModalResult(ms, None, None, 100.0, ("a", "b"),
+                           complex_shapes=tuple(np.array(s, complex) for _, s in modes))
+
+    low = Band((1.0, 10.0), (1.0, 11.5), 25.0, 40, 50, 40, 10)
+    high = Band((10.0, 100.0), (8.7, 100.0), 250.0, 4, 50, 40, 10)
+    same, other = (1.0, 0.6), (1.0, -1.0)
+    f_copy, f_own = 10.9, 11.4               # 4.6 % apart: beyond the 2 % of two interior estimates
+    assert 1.02 < f_own / f_copy < MARGIN
+    res = merge_band_results([BandResult(low, result([(3.0, same), (f_copy, same), (10.6, other)])),
+                              BandResult(high, result([(f_own, same), (40.0, same)]))])
+    assert [m.frequency_hz for m in res.modes] == [3.0, 10.6, f_own, 40.0]
+
+
 # ------------------------------------------------------------- identical spans, each instrumented
 def test_identical_spans_each_with_sensors_get_their_own_modes(tmp_path, capsys):
     """Three decoupled spans of one design ring at one frequency: the joint identification's poles are

@@ -140,25 +140,26 @@ def test_partner_sim_first_modes_with_defaults(case, kind, tmp_path, capsys):
     assert _nearest_rel(f, truth[0]) < (0.01 if kind == "ambient" else PARTNER_ZETA), (truth[0], f)
 
 
+def _two_channel_result(modes):
+    """A ModalResult on channels a, b of ``modes`` ((frequency_hz, shape)), for the band merge."""
+    from maglev_ros.modal.ssi_cov import ModalResult, Mode
+    ms = tuple(Mode(f"M{k + 1}", f, 0.01, {"a": s[0], "b": s[1]}, 1.0, 0.0, 0.001, 0.001)
+               for k, (f, s) in enumerate(modes))
+    return ModalResult(ms, None, None, 100.0, ("a", "b"),
+                       complex_shapes=tuple(np.array(s, complex) for _, s in modes))
+
+
 def test_merge_keeps_one_estimate_of_a_mode_found_in_two_bands():
     """A mode in the overlap of two bands is reported once, from the band it lies deeper in;
     a close mode with another shape is kept."""
     from maglev_ros.modal.bands import Band, BandResult, merge_band_results
-    from maglev_ros.modal.ssi_cov import ModalResult, Mode
-
-    def result(modes):      # (frequency_hz, shape)
-        ms = tuple(Mode(f"M{k + 1}", f, 0.01, {"a": s[0], "b": s[1]}, 1.0, 0.0, 0.001, 0.001)
-                   for k, (f, s) in enumerate(modes))
-        return ModalResult(ms, None, None, 100.0, ("a", "b"),
-                           complex_shapes=tuple(np.array(s, complex) for _, s in modes))
-
     low = Band((1.0, 10.0), (1.0, 11.5), 25.0, 40, 50, 40, 10)
     high = Band((10.0, 100.0), (8.7, 100.0), 250.0, 4, 50, 40, 10)
     same = (1.0, 1.0)
     other = (1.0, -1.0)
     res = merge_band_results([
-        BandResult(low, result([(3.0, same), (9.2, same)])),             # 9.2: near low's top
-        BandResult(high, result([(9.25, same), (9.3, other), (40.0, same)]))])
+        BandResult(low, _two_channel_result([(3.0, same), (9.2, same)])),             # 9.2: near low's top
+        BandResult(high, _two_channel_result([(9.25, same), (9.3, other), (40.0, same)]))])
     f = [m.frequency_hz for m in res.modes]
     # 9.2 Hz lies inside the low band's core, 9.25 Hz in the high band's overlap (outside its core)
     assert f == [3.0, 9.2, 9.3, 40.0]
@@ -170,21 +171,13 @@ def test_merge_drops_the_edge_copy_of_a_mode_the_next_band_owns():
     edge (the band's own estimate is outside its core); the band whose core holds it has the mode: one
     estimate, the owner's. A margin mode with another shape is a mode of its own and stays."""
     from maglev_ros.modal.bands import MARGIN, Band, BandResult, merge_band_results
-    from maglev_ros.modal.ssi_cov import ModalResult, Mode
-
-    def result(modes):      # (frequency_hz, shape)
-        ms = tuple(Mode(f"M{k + 1}", f, 0.01, {"a": s[0], "b": s[1]}, 1.0, 0.0, 0.001, 0.001)
-                   for k, (f, s) in enumerate(modes))
-        return ModalResult(ms, None, None, 100.0, ("a", "b"),
-                           complex_shapes=tuple(np.array(s, complex) for _, s in modes))
-
     low = Band((1.0, 10.0), (1.0, 11.5), 25.0, 40, 50, 40, 10)
     high = Band((10.0, 100.0), (8.7, 100.0), 250.0, 4, 50, 40, 10)
     same, other = (1.0, 0.6), (1.0, -1.0)
     f_copy, f_own = 10.9, 11.4               # 4.6 % apart: beyond the 2 % of two interior estimates
     assert 1.02 < f_own / f_copy < MARGIN
-    res = merge_band_results([BandResult(low, result([(3.0, same), (f_copy, same), (10.6, other)])),
-                              BandResult(high, result([(f_own, same), (40.0, same)]))])
+    res = merge_band_results([BandResult(low, _two_channel_result([(3.0, same), (f_copy, same), (10.6, other)])),
+                              BandResult(high, _two_channel_result([(f_own, same), (40.0, same)]))])
     assert [m.frequency_hz for m in res.modes] == [3.0, 10.6, f_own, 40.0]
 
 

@@ -10,8 +10,8 @@ With no options the settings follow the recording (:mod:`maglev_ros.modal.bands`
 looked for from 1 Hz (raised for a short record) to 0.4 x the sampling rate, in bands of at
 most a decade, each decimated and given block rows and orders by stated rules; the modes of all
 bands are merged. Given options override. Accelerometers on several spans that move apart (their
-coherence at chance level) are identified span by span as well (:mod:`maglev_ros.modal.groups`). Prints the settings and a table; ``--json`` writes
-the ``maglev-modes/1`` document (settings under ``source.settings``); ``--plot`` writes the
+coherence at chance level) are identified span by span as well (:mod:`maglev_ros.modal.groups`).
+Prints the settings and a table; ``--json`` writes the ``maglev-modes/1`` document (settings under ``source.settings``); ``--plot`` writes the
 stabilization diagram over the spectrum.
 """
 from __future__ import annotations
@@ -130,7 +130,7 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
     identical spans ring at one frequency and their joint poles never stabilize)."""
     from maglev_ros.bag_windows import read_window
     from maglev_ros.modal.groups import independent_groups, merge_group_modes
-    r, acc = args[1], args[4]
+    r, acc = args[1], args[4]           # the open bag and its accelerations, as _identify_streamed takes them
     chans = out.info["channels"]
     t0 = acc.first_time_s
     win = out.info.get("free_decay_window")

@@ -321,14 +321,13 @@ def measure_damping(ambient: Recording | None, spec: ModelSpec, below_hz: float 
 def _combined(per: list[MeasuredDamping]) -> MeasuredDamping:
     """The first span's result with the one ratio of every span's measured modes (the twin damps all
     spans alike) and each span's own result in ``spans``."""
-    first = per[0]
-    used = [m for d in per for m in d.modes if m.usable]
-    if not used:
-        why = "; ".join(f"span {d.span_id}: {d.reason}" for d in per)
-        return replace(first, damping_ratio=None, std_damping_ratio=None, applied=False, chi2=None,
-                       reason=f"no span's modes 1-2 measured ({why})", spans=tuple(per))
     where = [(k, j) for k, d in enumerate(per) for j, m in enumerate(d.modes) if m.usable]
-    zeta, std, chi2, applied, reason, dropped = _one_ratio(used, first.design_damping_ratio,
+    if not where:
+        why = "; ".join(f"span {d.span_id}: {d.reason}" for d in per)
+        return replace(per[0], damping_ratio=None, std_damping_ratio=None, applied=False, chi2=None,
+                       reason=f"no span's modes 1-2 measured ({why})", spans=tuple(per))
+    zeta, std, chi2, applied, reason, dropped = _one_ratio([per[k].modes[j] for k, j in where],
+                                                           per[0].design_damping_ratio,
                                                            [per[k].span_id for k, _ in where])
     for i in dropped:           # marked in its span's own result: its frequency is not the span's mode either
         k, j = where[i]
@@ -336,8 +335,7 @@ def _combined(per: list[MeasuredDamping]) -> MeasuredDamping:
         modes[j] = replace(modes[j], consistent=False,
                            reason=modes[j].reason + "; damping off the other spans' modes beyond chance: not used")
         per[k] = replace(per[k], modes=tuple(modes))
-    first = per[0]
-    return replace(first, damping_ratio=zeta, std_damping_ratio=std, applied=applied, reason=reason, chi2=chi2,
+    return replace(per[0], damping_ratio=zeta, std_damping_ratio=std, applied=applied, reason=reason, chi2=chi2,
                    spans=tuple(per))
 
 

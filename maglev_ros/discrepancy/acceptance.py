@@ -22,7 +22,6 @@
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -56,8 +55,6 @@ class Verdict:
     heldout_before: float
     heldout_after: float
     delta_bic: float
-    gain_z: float = math.nan          # the held-out gain over its standard error where it was judged
-    local_gain_z: float = math.nan    # the same on the channels it acts on, when judged on the whole
 
     @property
     def heldout_gain(self) -> float:
@@ -66,17 +63,12 @@ class Verdict:
     def to_dict(self) -> dict:
         return {"accepted": self.accepted, "reasons": list(self.reasons),
                 "heldout_nrmse_before": self.heldout_before, "heldout_nrmse_after": self.heldout_after,
-                "delta_bic": self.delta_bic, **self.gain_evidence()}
-
-    def gain_evidence(self) -> dict:
-        return {k: float(x) for k, x in (("heldout_gain_z", self.gain_z), ("local_heldout_gain_z", self.local_gain_z))
-                if not math.isnan(x)}
+                "delta_bic": self.delta_bic}
 
 
 def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausible: tuple[bool, str],
           collinearity: float, cfg: AcceptanceConfig = AcceptanceConfig(),
-          heldout_llr: float | None = None, reference: str = "the calibrated twin",
-          gain_z: float = math.nan) -> Verdict:
+          heldout_llr: float | None = None, reference: str = "the calibrated twin") -> Verdict:
     """``reference``: the simpler model the BIC is compared with, as the reasons name it."""
     why = []
     if heldout_llr is not None and heldout_llr < cfg.min_heldout_llr:
@@ -91,7 +83,7 @@ def judge(heldout_before: float, heldout_after: float, delta_bic: float, plausib
     if collinearity > cfg.max_collinear:
         why.append(f"its signature is {collinearity:.2f} collinear with a calibrated parameter (a change of "
                    f"E, kb, kp or kv explains the same)")
-    return Verdict(not why, tuple(why), float(heldout_before), float(heldout_after), float(delta_bic), gain_z)
+    return Verdict(not why, tuple(why), float(heldout_before), float(heldout_after), float(delta_bic))
 
 
 REST_WORSE = "it makes the rest of the recording worse"
@@ -101,7 +93,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
                         delta_bic: float, plausible: tuple[bool, str], collinearity: float,
                         cfg: AcceptanceConfig = AcceptanceConfig(), local_llr: float | None = None,
                         reference: str = "the calibrated twin", absorbed_by: str | None = None,
-                        separated_by: str | None = None, gain_z: float = math.nan) -> Verdict:
+                        separated_by: str | None = None) -> Verdict:
     """:func:`judge` with the held-out gates on the channels the extension acts on (``local_*``,
     ``local_llr``; margins ``min_rel_gain_local``, ``min_abs_gain_local``) and one more: the whole recording's
     held-out NRMSE may not rise by more than ``min_rel_gain / 2``. The verdict carries the
@@ -119,41 +111,7 @@ def judge_where_it_acts(whole_before: float, whole_after: float, local_before: f
     if whole_after > whole_before * (1 + 0.5 * cfg.min_rel_gain):
         why += (f"{REST_WORSE} (whole held-out NRMSE {whole_before:.3f} -> "
                 f"{whole_after:.3f})",)
-    return Verdict(not why, why, float(whole_before), float(whole_after), float(delta_bic), gain_z)
-
-
-MIN_BATCHES = 8
-
-
-def heldout_gain_z(before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> float:
-    """The held-out gain of one model over another, standardised by the data's own spread: the drop of
-    the squared residual summed per time block (:func:`.evaluate.residual_blocks`, ``(residuals, block)``
-    of each model), its mean over the blocks divided by that mean's standard error. The error is the
-    largest batch-means estimate over runs of 1, 2, 4, ... neighbouring blocks (at least
-    ``MIN_BATCHES`` runs): a model error that persists for seconds is one gain, not many, as long as
-    the record holds many of its correlation times (a shorter one overstates z). NaN with fewer than
-    ``MIN_BATCHES`` blocks."""
-    (r0, b0), (r1, b1) = before, after
-    if r0.size == 0 or r1.size == 0:
-        return math.nan
-    n = int(max(b0.max(), b1.max())) + 1
-    s0 = np.bincount(b0, weights=r0 ** 2, minlength=n)
-    s1 = np.bincount(b1, weights=r1 ** 2, minlength=n)
-    used = (np.bincount(b0, minlength=n) > 0) | (np.bincount(b1, minlength=n) > 0)
-    d = (s0 - s1)[used]
-    if d.size < MIN_BATCHES:
-        return math.nan
-    var_mean = 0.0
-    m = 1
-    while d.size // m >= MIN_BATCHES:
-        k = d.size // m
-        means = d[:k * m].reshape(k, m).mean(axis=1)
-        var_mean = max(var_mean, float(np.var(means, ddof=1)) / k)
-        m *= 2
-    gain = float(d.mean())
-    if var_mean <= 0:
-        return math.copysign(math.inf, gain) if gain else 0.0
-    return gain / math.sqrt(var_mean)
+    return Verdict(not why, why, float(whole_before), float(whole_after), float(delta_bic))
 
 
 def collinearity(jcol: np.ndarray, jac_cal: np.ndarray) -> float:

@@ -435,24 +435,14 @@ def residual_vector(spec: ModelSpec, rds: list[RecData], channels=None) -> np.nd
     """Normalised residuals of every fitted channel/feature (:func:`_fit_items`), each weighted
     equally within a recording. ``channels``: only those channels and the features built from them
     (or a :class:`Selection`)."""
-    return residual_blocks(spec, rds, channels)[0]
-
-
-def residual_blocks(spec: ModelSpec, rds: list[RecData], channels=None) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`residual_vector` and the time block of each row: one recording's frames two at a time
-    (50 % overlapped frames share their samples), numbered in time order over the recordings."""
-    parts, blocks = [], []
+    parts = []
     nrec = len(rds)
     only = _selection(channels)
-    offset = 0
     for rd in rds:
-        names: list = []
-        items = _fit_items(spec, rd, only, names_out=names)
-        for (am, at, den), (_, _, fr) in zip(items, names):
+        items = _fit_items(spec, rd, only)
+        for am, at, den in items:
             parts.append((am - at) / den / math.sqrt(len(items) * nrec))
-            blocks.append(offset + fr // 2)
-        offset += rd.grid.n_frames // 2 + 1
-    return np.concatenate(parts), np.concatenate(blocks).astype(int)
+    return np.concatenate(parts)
 
 
 def residual_rows(spec: ModelSpec, rds: list[RecData], channels) -> np.ndarray:

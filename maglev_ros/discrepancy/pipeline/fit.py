@@ -12,7 +12,7 @@ found in the data are fitted as sensor errors of their channel.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -21,11 +21,9 @@ from maglev_ros.parallel import SERIAL, Executor
 from maglev_ros.progress import NULL, Progress
 
 from .. import catalogue as cat
-from ..acceptance import (REST_WORSE, AcceptanceConfig, Verdict, collinearity, heldout_gain_z, judge,
-                          judge_where_it_acts)
+from ..acceptance import REST_WORSE, AcceptanceConfig, Verdict, collinearity, judge, judge_where_it_acts
 from ..catalogue import VEHICLE_WIDE
-from ..evaluate import (RecData, Selection, fit_report, levitation_items, residual_blocks, residual_rows,
-                        residual_vector, split_frames)
+from ..evaluate import RecData, Selection, fit_report, levitation_items, residual_rows, residual_vector, split_frames
 from ..fitting import BaseFit, HypFit, bic, fit_gains, fit_hypothesis, safe_residual
 from ..recording import Recording
 from .calibrate import Calibration
@@ -47,7 +45,6 @@ class Null:
     n_train: int                       # effective count of its training rows
     heldout_nrmse: float
     heldout: tuple[float, int]         # (held-out RSS, effective count)
-    heldout_blocks: tuple = ()         # its held-out (residuals, time block) where judged
 
 
 @dataclass(eq=False)
@@ -105,22 +102,10 @@ class Evidence:
                 own_set = self.cal.prepare(sp, floor_spec=base.spec, log=None)
                 tr, te = own_set.rd_train, own_set.rd_test
             held = self.held_of(h, tr, te)
-            r_tr = residual_vector(sp, tr, fit_on)
-            r_te, b_te = residual_blocks(sp, held, judged_on)
+            r_tr, r_te = residual_vector(sp, tr, fit_on), residual_vector(sp, held, judged_on)
             self.nulls[key] = Null(float(r_tr @ r_tr), max(10, r_tr.size // 2), fit_report(sp, held, judged_on)[0],
-                                   (float(r_te @ r_te), max(10, r_te.size // 2)), (r_te, b_te))
+                                   (float(r_te @ r_te), max(10, r_te.size // 2)))
         return self.nulls[key]
-
-    def gain_z(self, spec, chans=None, rds=None, ref_blocks=None, ref_rds=None) -> float:
-        """:func:`..acceptance.heldout_gain_z` of ``spec`` on the held-out passes (``rds``: with its own
-        rail) against the calibrated twin on ``ref_rds`` (default: the held-out passes), or against
-        ``ref_blocks`` (another reference's held-out residual blocks), over ``chans`` when given."""
-        base, rd_test = self.cal.base, self.cal.data.rd_test
-        try:
-            ref = ref_blocks or residual_blocks(base.spec, rd_test if ref_rds is None else ref_rds, chans)
-            return heldout_gain_z(ref, residual_blocks(spec, rd_test if rds is None else rds, chans))
-        except ValueError:      # nothing fitted there
-            return math.nan
 
     def held_llr(self, spec, chans=None, rds=None, ref=None):
         """Held-out log-likelihood ratio against the calibrated twin (over ``chans`` and their
@@ -247,21 +232,16 @@ class _FitOne:
             gains = dict(reference="the calibrated twin with kp, kv re-fitted there",
                          absorbed_by="the levitation gains kp, kv re-fitted on these channels",
                          separated_by=cat.SEPARATED_BY.get(h.effect)) if null is not None else {}
-            z = ev.gain_z(hf.spec, at, held_of(h, rd_train_h, rd_test_h),
-                          null.heldout_blocks if null is not None else None, held_of(h, rd_train, rd_test))
             v = judge_where_it_acts(held_before, held_after, *out.local_ev, dbic, h.plausible(hf.params),
                                     col, config.acceptance,
                                     ev.held_llr(hf.spec, at, held_of(h, rd_train_h, rd_test_h),
                                                 null.heldout if null is not None else None),
-                                    gain_z=z, **gains)
+                                    **gains)
             if null is not None and v.reasons and all(r.startswith(REST_WORSE) for r in v.reasons):
                 hf, v = recalibrated_whole(base, hf, v, rd_train_h, rd_test_h, held_before, config.acceptance)
         else:
             v = judge(held_before, held_after, dbic, h.plausible(hf.params), col, config.acceptance,
-                      ev.held_llr(hf.spec), gain_z=ev.gain_z(hf.spec, rds=rd_test_h))
-            if at:
-                v = replace(v, local_gain_z=ev.gain_z(hf.spec, at, held_of(h, rd_train_h, rd_test_h),
-                                                      ref_rds=held_of(h, rd_train, rd_test)))
+                      ev.held_llr(hf.spec))
         out.fit = (hf, v, dbic)
         return out
 
@@ -346,7 +326,7 @@ def recalibrated_whole(base: BaseFit, hf: HypFit, v: Verdict, rd_train, rd_test,
            f"with kp, kv re-fitted on its channels only it was {v.heldout_after:.3f}, a trade of the girder "
            f"sensors' fit for the magnets' that the gains make without the physics too")
     hf.spec = sp_all           # in place: the fit is known by its id (own rail, local evidence)
-    return hf, Verdict(True, (why,), v.heldout_before, float(whole), v.delta_bic, v.gain_z)
+    return hf, Verdict(True, (why,), v.heldout_before, float(whole), v.delta_bic)
 
 
 def dropout_fit(base, n, t0, t1, drops, rd_train, rd_test, held_before, bic0, n_eff):

@@ -11,7 +11,7 @@ better. Instrument findings judged against the peers' level are reported but lea
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,7 +59,7 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
     # a scale-like misfit that another sensor of the same span shares is the span, not one sensor
     for n, why in _span_wide(sig_of, recs, rd_train[0].rec, base.spec).items():
         sig_of[n] = None
-        fits = [(hf, replace(v, reasons=v.reasons + (why,)), d)
+        fits = [(hf, Verdict(v.accepted, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic), d)
                 if hf.hyp.effect == "sensor_error" and hf.hyp.location["channels"][:1] == [n] and not v.accepted
                 else (hf, v, d) for hf, v, d in fits]
     signatures = _scale_signatures(fits, sig_of, local_ev, cfg.acceptance)
@@ -270,7 +270,7 @@ def _scale_needs_its_signature(hf, v: Verdict, d: float, sig_of: dict) -> tuple:
     why = (f"fitted scale x{math.exp(ln_s):.2f}, but a scale fault reads the same factor in every band and "
            f"recording and this channel does not ({sig.explain()}): the structure near it or the twin, "
            "not the instrument")
-    return hf, replace(v, accepted=False, reasons=(why,)), d
+    return hf, Verdict(False, (why,), v.heldout_before, v.heldout_after, v.delta_bic), d
 
 
 def _peer_gates(h, sig: ScaleSignature | None, pf: PeerReferencedFit | None, acc: AcceptanceConfig) -> str:
@@ -365,7 +365,7 @@ def _peer_check(fits: list, rec: Recording, scale_faulty: set[str] = frozenset()
                 why = (f"{p} (same quantity) reads x{math.exp(lp):.2f} against the twin too (delta BIC {dp:+.0f}): "
                        "a scale common to those channels (the twin's level), not one faulty sensor")
             if why:
-                v = replace(v, accepted=False, reasons=v.reasons + (why,))
+                v = Verdict(False, v.reasons + (why,), v.heldout_before, v.heldout_after, v.delta_bic)
         out.append((hf, v, d))
     return out
 

@@ -105,7 +105,7 @@ def rejections(cal: Calibration, prop: Proposal, fr: Fits, jd: Judgement, config
             why = "; ".join(reasons) if not v.accepted else (
                 f"also improves the fit (held-out NRMSE {v.heldout_before:.3f} -> {v.heldout_after:.3f}) but "
                 f"less than {chosen[0][0].hyp.label} for the same residual")
-        rejected.append({"effect": hf.hyp.effect, "why": f"{hf.hyp.label}: {why}", **v.gain_evidence()})
+        rejected.append({"effect": hf.hyp.effect, "why": f"{hf.hyp.label}: {why}"})
     for _, h in screened[cfg.n_top:]:
         if any(h is p for p in phys):
             continue
@@ -230,7 +230,7 @@ def catalogue_entry(hf: HypFit, v: Verdict, dbic: float, spec: ModelSpec,
             "frequency_hz": list(h.band_hz) if h.band_hz else None,
             "parameters": params,
             "evidence": {"heldout_nrmse_before": v.heldout_before, "heldout_nrmse_after": v.heldout_after,
-                         "delta_bic": float(dbic), **v.gain_evidence()},
+                         "delta_bic": float(dbic)},
             # (optional key) the held-out NRMSE over the channels the extension acts on
             **({"heldout_on_its_channels": {"channels": sorted(loc.get("channels") or []),
                                             "nrmse_before": float(local[0]), "nrmse_after": float(local[1])}}

@@ -312,6 +312,41 @@ def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, fl
                       plausible=plaus, describe=desc)
 
 
+def ambient_background_hypothesis(guideway_channels: list[str], background: dict, source: str,
+                                  accel_channels: frozenset = frozenset()) -> Hypothesis:
+    """The ambient vibration as measured on one pass's quiet stretches (``background``: channel -> band
+    powers above the noise floor, :attr:`..evaluate.RecData.background`), carried into every pass by
+    one level factor (parameter: its log10): a foreign line's ambient need not follow the twin's modes
+    and a power law in frequency. The RMS it reports is of ``accel_channels``."""
+    bg = tuple((n, tuple(float(x) for x in v)) for n, v in sorted(background.items()))
+    rms1 = {n: math.sqrt(sum(v)) for n, v in bg if n in accel_channels}
+
+    def apply(sp, p):
+        return sp.with_(ambient_log10_psd=float(p[0]), ambient_slope=0.0, ambient_background=bg)
+
+    def rms_of(p):
+        return {n: r * math.sqrt(10.0 ** float(p[0])) for n, r in rms1.items()}
+
+    def plaus(p):
+        mx = max(rms_of(p).values(), default=0.0)
+        if mx > 2.0:
+            return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
+        return True, ""
+
+    def desc(p, sp):
+        r = rms_of(p)
+        mx = max(r.values(), default=0.0)
+        return (f"The guideway vibrates even without our vehicle (about {mx * 1e3:.0f} mm/s^2 RMS above the "
+                f"sensors' noise, as measured before the vehicle enters and after it leaves {source}): vibration "
+                f"from adjacent lines or the ground, which the twin does not include.",
+                {"level_factor": 10.0 ** float(p[0]), "measured_on": source,
+                 "ambient_rms_mps2": {k: float(v) for k, v in r.items()}})
+    return Hypothesis("ambient_excitation", "ambient_excitation.measured", ("log10_level",), (-2.0,), (2.0,),
+                      (0.0,), apply, needs_sim=False,
+                      location={"position_m": None, "span": None, "channels": guideway_channels},
+                      plausible=plaus, describe=desc)
+
+
 def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float) -> Hypothesis:
     """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second)."""
     def apply(sp, p):

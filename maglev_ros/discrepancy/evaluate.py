@@ -33,6 +33,7 @@ from .irregularity import vehicle_over_valid
 from .recording import Recording
 
 QUIET_REL = 1e-3
+MIN_QUIET_FRAMES = 4          # ~1.25 s of 0.5 s frames at a 0.25 s hop: a background measured, not one frame
 RAIL_SNR = 10.0      # rail band power over its noise below which a transmissibility cell is not used
 BODY_MIN_HZ = 3.0    # car-body bands below this are ruled by waves longer than the reconstruction
                      # (clean case, 0-3 Hz: body/magnet ratio measured 5.8, twin 1.4)
@@ -90,6 +91,9 @@ class RecData:
     masks: dict                      # usable bands per channel (bool, n_bands)
     noise: dict = field(default_factory=dict)    # (n_bands,) noise floor per channel
     quiet: dict = field(default_factory=dict)    # (n_frames,) quiet-frame mask per channel
+    # (n_bands,) per guideway channel: its quiet frames' mean band power above the noise floor in the
+    # twin's modal bands (the line ringing with the vehicle away: ambient excitation, if any)
+    background: dict = field(default_factory=dict)
     # per magnet with an accel and a gap channel: key -> (accel, gap) names, measured squared
     # gap-to-rail transmissibility (n_frames, n_bands) and its usable bands
     sens_pairs: dict = field(default_factory=dict)
@@ -203,6 +207,10 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
                 cap = np.fmin(np.nanmean(src[quiet], axis=0), cap)
         floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
         rd.noise[n] = floor
+        if src is pm[n] and ch.group.startswith("guideway") and quiet.sum() >= MIN_QUIET_FRAMES:
+            # in the structure's modal bands only: elsewhere the floor holds what the line adds, and a
+            # sensor's own bias or drift (the lowest bands) is not a vibration of the line
+            rd.background[n] = np.where(masks[n] & ex & np.isfinite(cap), np.clip(cap - floor, 0.0, None), 0.0)
     for key, (a, g) in transmissibility_pairs(rec).items():
         ca, cg = rec.channels[a], rec.channels[g]
         s, py = rail_transmissibility(ca.time_s, ca.values, np.interp(ca.time_s, cg.time_s, cg.values),
@@ -248,7 +256,7 @@ _AMB_CACHE: dict = {}
 
 def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
     """Band power per unit modal-force PSD (1 N^2/Hz per mass-normalised mode) at guideway sensors."""
-    key = (spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=()), id(rd))
+    key = (spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=()), id(rd))
     hit = _AMB_CACHE.get(key)
     if hit is not None and hit[0] is rd:
         return hit[1]
@@ -260,9 +268,14 @@ def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
 
 
 def ambient_powers(spec: ModelSpec, rd: RecData) -> dict:
-    """Ambient band powers of the guideway channels: 10^level * shape * (f_band / 20 Hz)^slope."""
+    """Ambient band powers of the guideway channels: 10^level * shape * (f_band / 20 Hz)^slope, or
+    with a measured background (``spec.ambient_background``) 10^level times that background."""
     if spec.ambient_log10_psd is None:
         return {}
+    if spec.ambient_background:
+        lvl = 10.0 ** spec.ambient_log10_psd
+        return {n: lvl * np.asarray(bg) for n, bg in spec.ambient_background
+                if n in rd.rec.channels and len(bg) == rd.grid.n_bands}
     fc = np.maximum(rd.grid.band_center_hz, 1.0)
     w = (10.0 ** spec.ambient_log10_psd) * (fc / 20.0) ** spec.ambient_slope
     return {n: v * w for n, v in ambient_shape(spec, rd).items()}
@@ -319,7 +332,7 @@ def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict]:
     """Band powers and rail transmissibilities of the physics-only prediction (cached per physics
     spec and recording; the prediction itself is not kept: a few MB per entry, hundreds of
     entries in a diagnosis)."""
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=())
     key = (phys, id(rd))
     hit = _PT_CACHE.get(key)
     if hit is not None and hit[0] is rd:

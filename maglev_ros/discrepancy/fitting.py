@@ -369,12 +369,14 @@ def _fit_cheap(base, hyp, rds, scale, z0, bounds) -> HypFit:
 
 
 def fit_ambient(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
-    """Level and spectral slope of the ambient modal forcing (no simulation needed): start from the
-    best level on a grid, then least_squares on both."""
+    """Level (and spectral slope, for the modal-forcing form) of the ambient vibration (no simulation
+    needed): start from the best level on a grid, then least_squares."""
+    k = len(hyp.trial)
     grid = np.arange(hyp.lower[0], hyp.upper[0] + 1e-9, 0.5)
-    rs = [float(np.sum(residual_vector(hyp.apply(base.spec, np.array([g, 0.0])), rds) ** 2)) for g in grid]
-    z0 = np.array([grid[int(np.argmin(rs))], 0.0])
-    return _fit_cheap(base, hyp, rds, np.ones(2), z0, (list(hyp.lower), list(hyp.upper)))
+    rs = [float(np.sum(residual_vector(hyp.apply(base.spec, np.array([g, *hyp.trial[1:]])), rds) ** 2))
+          for g in grid]
+    z0 = np.array([grid[int(np.argmin(rs))], *hyp.trial[1:]], dtype=float)
+    return _fit_cheap(base, hyp, rds, np.ones(k), z0, (list(hyp.lower), list(hyp.upper)))
 
 
 def fit_hypothesis(base: BaseFit, hyp: Hypothesis, rds: list[RecData], select=None) -> HypFit:

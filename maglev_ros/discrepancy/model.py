@@ -72,6 +72,9 @@ class ModelSpec:
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
+    # (channel, band powers): a background measured on the quiet stretches of a pass; then
+    # ambient_log10_psd is the log10 factor on it and the slope is unused (ambient_excitation.measured)
+    ambient_background: tuple[tuple[str, tuple[float, ...]], ...] = ()
     dropouts: tuple[tuple[str, float, float, float], ...] = ()  # (channel, t0_s, t1_s, value held)
     air_spring_force: tuple[tuple[str, float], ...] = ()    # (term of AIR_SPRING_TERMS, coefficient SI) per air spring
     dt_max_s: float | None = None
@@ -327,7 +330,7 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     earlier: one delay for all sensor topics, the vehicle accel topic's)."""
     if rec.kind != "pass" or rec.position_time_s is None:
         return None
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, dropouts=())
+    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=())
     key = (phys, id(rec), fs_out_hz)
     hit = _CACHE.get(key)
     if hit is not None and hit[0] is rec:

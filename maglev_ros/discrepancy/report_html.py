@@ -69,6 +69,8 @@ PHYSICS_PARAMS = {
     "log10_modal_force_psd_at_20hz": ("log10(N^2/Hz), unit modal mass", "no ambient vibration"),
     "spectral_slope": ("1", None),
     "ambient_rms_mps2": ("m/s^2", 0.0),
+    "level_factor": ("1", "no ambient vibration"),
+    "measured_on": (None, None),
     "scale": ("1", 1.0),
     "offset": (None, 0.0),               # unit of its channel
     "drift_per_s": (None, 0.0),          # unit of its channel per second

@@ -143,6 +143,10 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False,
             return {n: float(math.sqrt((10 ** lg) * np.sum(s * (fc / 20.0) ** slope))) for n, s in shape.items()
                     if rd.rec.channels[n].group == "guideway_accel"}
         hyps.append(cat.ambient_hypothesis(gw, rms_of))
+        bg = {n: v for n, v in rd.background.items() if np.any(v > 0)}
+        if bg:
+            hyps.append(cat.ambient_background_hypothesis(gw, bg, f"in {rd.rec.name}",
+                                                          frozenset(rec.names("guideway_accel"))))
     for n, ch in rec.channels.items():
         if ch.group == "body_accel":
             # not tested: a car-body channel is compared through its ratio to the magnets above

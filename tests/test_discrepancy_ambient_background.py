@@ -1,0 +1,54 @@
+"""The ambient background measured on a pass's quiet stretches (evaluate.RecData.background) and the
+ambient_excitation form built on it, against the generator's drawn ambient level."""
+import math
+
+import numpy as np
+import pytest
+
+from discrepancy_cases import make_case
+from maglev_ros.discrepancy import catalogue as cat
+from maglev_ros.discrepancy.evaluate import ambient_powers, prepare
+from maglev_ros.discrepancy.model import base_spec
+
+LEVEL = 0.02     # m/s^2 RMS over the guideway accelerometers (the generator's definition)
+
+
+@pytest.fixture(scope="module")
+def prepared():
+    out = {}
+    for effect, params in (("ambient_excitation", {"rms_mps2": LEVEL}), (None, {})):
+        case = make_case("bg", effect, params, seed=21, speeds=(24.0, 30.0), n_spans=2)
+        rec = case.passes[0]
+        out[effect] = (rec, prepare(rec, base_spec(rec.metadata)))
+    return out
+
+
+def _rms_over_accels(rec, rd):
+    acc = [n for n in rec.names("guideway_accel") if n in rd.background]
+    assert acc, "no guideway accelerometer had quiet frames"
+    return math.sqrt(np.mean([np.sum(rd.background[n]) for n in acc]))
+
+
+def test_background_of_a_pass_with_ambient_vibration_is_its_level(prepared):
+    rec, rd = prepared["ambient_excitation"]
+    # the off-mode part of the ambient sits in the power-law noise floor, so the measured background
+    # holds most of the level, not more
+    assert 0.7 * LEVEL < _rms_over_accels(rec, rd) < 1.15 * LEVEL
+
+
+def test_background_of_a_clean_pass_is_small(prepared):
+    rec, rd = prepared[None]
+    assert _rms_over_accels(rec, rd) < 0.15 * LEVEL
+
+
+def test_the_measured_form_carries_the_background_by_one_factor(prepared):
+    rec, rd = prepared["ambient_excitation"]
+    h = cat.ambient_background_hypothesis(rec.names("guideway_accel"), rd.background, "in pass 1",
+                                          frozenset(rec.names("guideway_accel")))
+    spec = h.apply(base_spec(rec.metadata), np.array([math.log10(0.5)]))
+    amb = ambient_powers(spec, rd)
+    for n, bg in rd.background.items():
+        np.testing.assert_allclose(amb[n], 0.5 * bg, rtol=1e-12)
+    _, params = h.describe(np.array([0.0]), spec)
+    n = next(iter(rd.background))
+    assert params["ambient_rms_mps2"][n] == pytest.approx(math.sqrt(np.sum(rd.background[n])))

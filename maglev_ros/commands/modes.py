@@ -129,7 +129,7 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
     """Each span's sensors identified alone too when the spans move apart (:mod:`maglev_ros.modal.groups`:
     identical spans ring at one frequency and their joint poles never stabilize)."""
     from maglev_ros.bag_windows import read_window
-    from maglev_ros.modal.groups import independent_groups, merge_group_modes
+    from maglev_ros.modal.groups import independent_groups, merge_group_modes, spectral_peaks
     r, acc = args[1], args[4]           # the open bag and its accelerations, as _identify_streamed takes them
     chans = out.info["channels"]
     t0 = acc.first_time_s
@@ -143,9 +143,13 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
     if not apart:
         return out
     parts = [(names, _identify_streamed(*args, cols=[chans.index(n) for n in names]).result) for _, names in groups]
-    merged, added = merge_group_modes(out.result, parts)
-    out.info["channel_groups"] = [{"span": sid, "channels": list(names), "modes_added": a}
-                                  for (sid, names), a in zip(groups, added)]
+    data = np.asarray(cd.data, dtype=float)
+    keep = [spectral_peaks(data[:, c], float(cd.sample_rate_hz), part) for c, (_, part) in zip(cols, parts)]
+    merged, added = merge_group_modes(out.result, parts, keep)
+    out.info["channel_groups"] = [
+        {"span": sid, "channels": list(names), "modes_added": a,
+         "not_spectral_peaks_hz": [round(m.frequency_hz, 3) for k, m in enumerate(part.modes) if k not in kp]}
+        for (sid, names), a, (_, part), kp in zip(groups, added, parts, keep)]
     return BagModes(merged, out.info, out.plan)
 
 

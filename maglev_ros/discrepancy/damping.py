@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from maglev_ros.errors import UserError
+from maglev_ros.modal.peaks import spectral_peak
 
 from .model import ModelSpec, guideway_modal
 from .recording import Recording
@@ -253,36 +254,9 @@ def _extra_modes(res, d_ij: np.ndarray, m_ij: np.ndarray, twin_f: np.ndarray, re
 
 
 def _spectral_peak(rec: Recording, names: list[str], f_hz: float, others_hz=()) -> tuple[float, float]:
-    """(largest PSD within +-1 % of ``f_hz`` over the higher of its two flanks' median PSDs, 3-10 %
-    below and above, best channel; the ratio a Welch estimate of K segments reaches by chance:
-    1 + 3 / sqrt(K)). A mode is a local maximum of its own: on the skirt of a stronger neighbour (a
-    pole an identification band places off a mode just beyond its edge) the flank toward it is
-    higher; with another identified mode (``others_hz``) closer than the flanks begin, the estimate
-    cannot tell the two peaks apart and the mode is not confirmed (ratio 0)."""
-    from scipy.signal import welch
-    best, needed = 0.0, np.inf
-    for n in names:
-        c = rec.channels[n]
-        x = c.values - np.mean(c.values)
-        nper = int(min(8192, max(256, x.size // 8)))
-        f, p = welch(x, c.sample_rate_hz, nperseg=nper)
-        df = f[1] - f[0]
-        d = np.abs(f - f_hz)
-        gap = max(0.03 * f_hz, 3 * df)
-        if any(abs(g - f_hz) < gap for g in others_hz):
-            continue                                   # another mode inside the gap: not resolved here
-        near = d <= max(0.01 * f_hz, 2 * df)
-        flank = (d >= gap) & (d <= max(0.1 * f_hz, 10 * df))
-        left, right = flank & (f < f_hz), flank & (f > f_hz)
-        if not near.any() or not left.any() or not right.any():
-            continue
-        level = max(float(np.median(p[left])), float(np.median(p[right])))
-        if level <= 0:
-            continue
-        k = max(1, 2 * x.size // nper - 1)            # segments at 50 % overlap
-        best = max(best, float(p[near].max() / level))
-        needed = 1.0 + 3.0 / math.sqrt(k)
-    return best, (needed if np.isfinite(needed) else 0.0)
+    """:func:`maglev_ros.modal.peaks.spectral_peak` on the recording's channels ``names``."""
+    chans = [rec.channels[n] for n in names]
+    return spectral_peak([c.values for c in chans], [c.sample_rate_hz for c in chans], f_hz, others_hz)
 
 
 def _cluster_spread(res, k: int) -> float | None:

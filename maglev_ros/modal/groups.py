@@ -69,6 +69,16 @@ def independent_groups(data: np.ndarray, fs_hz: float, groups: Sequence[Sequence
     return worst <= bar, {"weighted_coherence": worst, "chance_99": bar, "segments": k}
 
 
+def spectral_peaks(x: np.ndarray, fs_hz: float, part: ModalResult) -> set[int]:
+    """Indices of ``part``'s modes that are spectral peaks of their own in the columns ``x`` (samples
+    x its channels; :mod:`.peaks`): a group of two sensors cannot tell a pole on the skirt of its
+    span's mode from a mode by its shape (a 2-channel span placed one at 18.5 Hz, 1 %, beside its
+    23.5 Hz mode)."""
+    from .peaks import is_spectral_peak
+    f = np.array([m.frequency_hz for m in part.modes], dtype=float)
+    return {k for k in range(f.size) if is_spectral_peak(x.T, fs_hz, float(f[k]), np.delete(f, k))}
+
+
 def _same(joint: ModalResult, j: int, part: ModalResult, k: int, cols: list[int]) -> bool:
     mj, mk = joint.modes[j], part.modes[k]
     f = mj.frequency_hz
@@ -78,9 +88,11 @@ def _same(joint: ModalResult, j: int, part: ModalResult, k: int, cols: list[int]
     return float(mac(np.asarray(joint.complex_shapes[j])[cols], np.asarray(part.complex_shapes[k]))) > SAME_MAC
 
 
-def merge_group_modes(joint: ModalResult, parts: Sequence[tuple[Sequence[str], ModalResult]]) -> tuple[ModalResult, list[int]]:
+def merge_group_modes(joint: ModalResult, parts: Sequence[tuple[Sequence[str], ModalResult]],
+                      keep: Sequence[set[int]] | None = None) -> tuple[ModalResult, list[int]]:
     """``joint`` (all channels) with the modes of ``parts`` ((group channels, their result)) no joint
-    mode explains; ids renumbered by frequency. Returns the result and how many each part added."""
+    mode explains; ids renumbered by frequency. ``keep``: per part, the indices of its modes that may
+    be added (default: all). Returns the result and how many each part added."""
     channels = tuple(joint.channels)
     modes = [(m, np.asarray(joint.complex_shapes[i]), ("joint", i)) for i, m in enumerate(joint.modes)]
     added = []
@@ -88,6 +100,8 @@ def merge_group_modes(joint: ModalResult, parts: Sequence[tuple[Sequence[str], M
         cols = [channels.index(n) for n in names]
         n_add = 0
         for k, m in enumerate(part.modes):
+            if keep is not None and k not in keep[g]:
+                continue
             if any(_same(joint, j, part, k, cols) for j in range(len(joint.modes))):
                 continue
             phi = np.zeros(len(channels), dtype=complex)

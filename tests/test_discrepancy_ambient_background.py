@@ -52,3 +52,22 @@ def test_the_measured_form_carries_the_background_by_one_factor(prepared):
     _, params = h.describe(np.array([0.0]), spec)
     n = next(iter(rd.background))
     assert params["ambient_rms_mps2"][n] == pytest.approx(math.sqrt(np.sum(rd.background[n])))
+
+
+def test_a_diagnosis_names_the_measured_ambient_at_its_level():
+    """End to end on a small ambient case (the generator's drawn level is the reference): the report names
+    ambient_excitation; when the measured form is the one carried, its RMS is the drawn level's order and the
+    HTML report shows its parameters."""
+    from maglev_ros.discrepancy.diagnose import diagnose
+    from maglev_ros.discrepancy.report_html import render
+    case = make_case("bg-e2e", "ambient_excitation", {"rms_mps2": LEVEL}, seed=21, speeds=(24.0, 30.0), n_spans=2,
+                     variant={"n_el": 20, "noise_colour": "white", "ambient_s": 8.0, "body_sensors": False})
+    d = diagnose(case.passes, case.ambient)
+    rep = d.to_dict()
+    (amb,) = [m for m in rep["missing_physics"] if m["effect"] == "ambient_excitation"]
+    rms = amb["parameters"]["ambient_rms_mps2"]
+    assert 0.5 * LEVEL < math.sqrt(np.mean(np.square(list(rms.values())))) < 1.5 * LEVEL
+    assert rep["fit_after"]["nrmse"] < rep["fit_before"]["nrmse"]
+    html = render(d)
+    if "measured_on" in amb["parameters"]:
+        assert "level_factor" in html

@@ -256,7 +256,7 @@ _AMB_CACHE: dict = {}
 
 def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
     """Band power per unit modal-force PSD (1 N^2/Hz per mass-normalised mode) at guideway sensors."""
-    key = (spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=()), id(rd))
+    key = (spec.physics_only(), id(rd))
     hit = _AMB_CACHE.get(key)
     if hit is not None and hit[0] is rd:
         return hit[1]
@@ -332,7 +332,7 @@ def _twin_powers(spec: ModelSpec, rd: RecData) -> tuple[dict, dict]:
     """Band powers and rail transmissibilities of the physics-only prediction (cached per physics
     spec and recording; the prediction itself is not kept: a few MB per entry, hundreds of
     entries in a diagnosis)."""
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=())
+    phys = spec.physics_only()
     key = (phys, id(rd))
     hit = _PT_CACHE.get(key)
     if hit is not None and hit[0] is rd:

@@ -84,6 +84,12 @@ class ModelSpec:
     def with_(self, **kw) -> "ModelSpec":
         return replace(self, **kw)
 
+    def physics_only(self) -> "ModelSpec":
+        """Without what is added to the simulated signals (sensor errors, ambient vibration, dropouts):
+        the part a simulation depends on (a cache key)."""
+        return replace(self, sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(),
+                       dropouts=())
+
     # --- calibrated values ---------------------------------------------------------------
     def cal_factor(self, name: str) -> float:
         k = CAL_PARAMS.index(name)
@@ -330,7 +336,7 @@ def simulate(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) ->
     earlier: one delay for all sensor topics, the vehicle accel topic's)."""
     if rec.kind != "pass" or rec.position_time_s is None:
         return None
-    phys = spec.with_(sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(), dropouts=())
+    phys = spec.physics_only()
     key = (phys, id(rec), fs_out_hz)
     hit = _CACHE.get(key)
     if hit is not None and hit[0] is rec:

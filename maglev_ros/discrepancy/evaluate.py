@@ -91,8 +91,8 @@ class RecData:
     masks: dict                      # usable bands per channel (bool, n_bands)
     noise: dict = field(default_factory=dict)    # (n_bands,) noise floor per channel
     quiet: dict = field(default_factory=dict)    # (n_frames,) quiet-frame mask per channel
-    # (n_bands,) per guideway channel: its quiet frames' mean band power above the noise floor in the
-    # twin's modal bands (the line ringing with the vehicle away: ambient excitation, if any)
+    # (n_bands,) per guideway channel: its quiet frames' mean band power above the noise floor from half
+    # the twin's lowest mode up (the line ringing with the vehicle away: ambient excitation, if any)
     background: dict = field(default_factory=dict)
     # per magnet with an accel and a gap channel: key -> (accel, gap) names, measured squared
     # gap-to-rail transmissibility (n_frames, n_bands) and its usable bands
@@ -176,6 +176,9 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
     pred = predict(base, rec)
     modal = guideway_modal(base)
     excl = _modal_bands(grid, modal.freq_hz[modal.freq_hz < 200])
+    # where the line can ring: from half its lowest mode up (below it a girder moves quasi-statically,
+    # and a sensor's own offset or drift lives in the lowest bands)
+    ringing = grid.edges_hz[:-1] >= 0.5 * float(modal.freq_hz.min()) if modal.freq_hz.size else excl
     for n, ch in rec.channels.items():
         pt = band_powers(ch.time_s, pred[n] - refs[n], ch.sample_rate_hz, grid)
         tot = np.nansum(pt, axis=1)
@@ -208,9 +211,7 @@ def prepare(rec: Recording, base: ModelSpec) -> RecData:
         floor = np.where(np.isfinite(cap), np.minimum(floor, cap), floor)
         rd.noise[n] = floor
         if src is pm[n] and ch.group.startswith("guideway") and quiet.sum() >= MIN_QUIET_FRAMES:
-            # in the structure's modal bands only: elsewhere the floor holds what the line adds, and a
-            # sensor's own bias or drift (the lowest bands) is not a vibration of the line
-            rd.background[n] = np.where(masks[n] & ex & np.isfinite(cap), np.clip(cap - floor, 0.0, None), 0.0)
+            rd.background[n] = np.where(masks[n] & ringing & np.isfinite(cap), np.clip(cap - floor, 0.0, None), 0.0)
     for key, (a, g) in transmissibility_pairs(rec).items():
         ca, cg = rec.channels[a], rec.channels[g]
         s, py = rail_transmissibility(ca.time_s, ca.values, np.interp(ca.time_s, cg.time_s, cg.values),

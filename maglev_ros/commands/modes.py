@@ -11,8 +11,8 @@ looked for from 1 Hz (raised for a short record) to 0.4 x the sampling rate, in 
 most a decade, each decimated and given block rows and orders by stated rules; the modes of all
 bands are merged. Given options override. Accelerometers on several spans that move apart (their
 coherence at chance level) are identified span by span as well (:mod:`maglev_ros.modal.groups`).
-Prints the settings and a table; ``--json`` writes the ``maglev-modes/1`` document (settings under ``source.settings``); ``--plot`` writes the
-stabilization diagram over the spectrum.
+Prints the settings and a table; ``--json`` writes the ``maglev-modes/1`` document (settings under
+``source.settings``); ``--plot`` writes the stabilization diagram over the spectrum.
 """
 from __future__ import annotations
 
@@ -138,12 +138,12 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
     hi = min(t0 + win["stop_s"] if win else np.inf, lo + GROUP_TEST_SAMPLES / float(acc.sample_rate_hz))
     cd = read_window(r, acc, lo, hi)
     cols = [[list(cd.channels).index(n) for n in names] for _, names in groups]
-    apart, evidence = independent_groups(np.asarray(cd.data, dtype=float), float(cd.sample_rate_hz), cols)
+    data = np.asarray(cd.data, dtype=float)
+    apart, evidence = independent_groups(data, float(cd.sample_rate_hz), cols)
     out.info["span_groups"] = {"spans": [sid for sid, _ in groups], "identified_apart": apart, **evidence}
     if not apart:
         return out
     parts = [(names, _identify_streamed(*args, cols=[chans.index(n) for n in names]).result) for _, names in groups]
-    data = np.asarray(cd.data, dtype=float)
     keep = [spectral_peaks(data[:, c], float(cd.sample_rate_hz), part) for c, (_, part) in zip(cols, parts)]
     merged, added = merge_group_modes(out.result, parts, keep)
     out.info["channel_groups"] = [

@@ -286,17 +286,23 @@ def carbody_hypothesis(vehicle_channels: list[str]) -> Hypothesis:
                       plausible=plaus, describe=desc, log_search=True)
 
 
+AMBIENT_MAX_RMS_MPS2 = 2.0     # stronger ambient vibration than this on a guideway is a fault, not a background
+
+
+def _ambient_plausible(rms_mps2: dict) -> tuple[bool, str]:
+    mx = max(rms_mps2.values(), default=0.0)
+    if mx > AMBIENT_MAX_RMS_MPS2:
+        return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
+    return True, ""
+
+
 def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, float], dict]) -> Hypothesis:
     """Parameters: log10 modal-force PSD at 20 Hz [N^2/Hz per unit modal mass] and its slope in f."""
     def apply(sp, p):
         return sp.with_(ambient_log10_psd=float(p[0]), ambient_slope=float(p[1]))
 
     def plaus(p):
-        r = rms_of(float(p[0]), float(p[1]))
-        mx = max(r.values()) if r else 0.0
-        if mx > 2.0:
-            return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
-        return True, ""
+        return _ambient_plausible(rms_of(float(p[0]), float(p[1])))
 
     def desc(p, sp):
         r = rms_of(float(p[0]), float(p[1]))
@@ -328,10 +334,7 @@ def ambient_background_hypothesis(guideway_channels: list[str], background: dict
         return {n: r * math.sqrt(10.0 ** float(p[0])) for n, r in rms1.items()}
 
     def plaus(p):
-        mx = max(rms_of(p).values(), default=0.0)
-        if mx > 2.0:
-            return False, f"fitted ambient vibration {mx:.2f} m/s^2 RMS is implausibly strong"
-        return True, ""
+        return _ambient_plausible(rms_of(p))
 
     def desc(p, sp):
         r = rms_of(p)

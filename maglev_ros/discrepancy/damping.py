@@ -247,16 +247,12 @@ def _extra_modes(res, d_ij: np.ndarray, m_ij: np.ndarray, twin_f: np.ndarray, re
             tot = float(np.sum(np.abs(lft) ** 2 + np.abs(rgt) ** 2))
             share = float(np.sum(np.abs(lft + rgt) ** 2) / (2 * tot)) if tot > 0 else None
         m = res.modes[i]
-        ratio, needed = _spectral_peak(rec, vert, float(m.frequency_hz), np.delete(f_id, i))
+        ratio, needed = spectral_peak([rec.channels[n].values for n in vert],
+                                      [rec.channels[n].sample_rate_hz for n in vert], float(m.frequency_hz),
+                                      np.delete(f_id, i))
         out.append(ExtraMode(float(m.frequency_hz), float(m.damping_ratio), float(np.max(m_ij[i])) if m_ij.size else 0.0,
                              share, str(m.id), ratio, needed))
     return tuple(out)
-
-
-def _spectral_peak(rec: Recording, names: list[str], f_hz: float, others_hz=()) -> tuple[float, float]:
-    """:func:`maglev_ros.modal.peaks.spectral_peak` on the recording's channels ``names``."""
-    chans = [rec.channels[n] for n in names]
-    return spectral_peak([c.values for c in chans], [c.sample_rate_hz for c in chans], f_hz, others_hz)
 
 
 def _cluster_spread(res, k: int) -> float | None:

@@ -21,6 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from maglev_ros.modal.peaks import is_spectral_peak
 from maglev_ros.modal.ssi_cov import ModalResult
 from maglev_ros.modal.stabilization import PoleTable, mac
 
@@ -74,7 +75,6 @@ def spectral_peaks(x: np.ndarray, fs_hz: float, part: ModalResult) -> set[int]:
     x its channels; :mod:`.peaks`): a group of two sensors cannot tell a pole on the skirt of its
     span's mode from a mode by its shape (a 2-channel span placed one at 18.5 Hz, 1 %, beside its
     23.5 Hz mode)."""
-    from .peaks import is_spectral_peak
     f = np.array([m.frequency_hz for m in part.modes], dtype=float)
     return {k for k in range(f.size) if is_spectral_peak(x.T, fs_hz, float(f[k]), np.delete(f, k))}
 

@@ -208,9 +208,12 @@ def _truth_stepper(cfg, spans, sensors, v, x0, eff: str | None, tp: dict, varian
     if eff == "control_delay" or variant.get("extra_lag_s", 0) > 0:
         lag = (tp.get("lag_s", 0.0) if eff == "control_delay" else 0.0) + variant.get("extra_lag_s", 0.0)
         cfg = with_levitation(cfg, coil_inductance_h=lag * cfg.levitation.coil_resistance_ohm)
-    st = TwinStepper(cfg, spans, sensors=sensors, irregularity=irregularity, fs_out_hz=1000.0,
+    # output every internal step (:func:`at_1khz` low-passes before the 1 kHz samples): guideway modes
+    # above the step's range ring at its prewarp cap and would fold into the band if sampled directly
+    dt = variant.get("dt_s", 5e-4)
+    st = TwinStepper(cfg, spans, sensors=sensors, irregularity=irregularity, fs_out_hz=1.0 / dt,
                      start_position_m=x0, start_speed_mps=v,
-                     init="rest", method=variant.get("method", "newmark"), dt_max_s=variant.get("dt_s", 5e-4))
+                     init="rest", method=variant.get("method", "newmark"), dt_max_s=dt)
     modal = _structural_effect_modes(st.guideway, spans, eff, tp, cfg.numerics)
     changed = modal is not None
     if changed:
@@ -330,6 +333,19 @@ def _noise(rng, n, std, colour: str) -> np.ndarray:
     return std * w / (np.std(w) + 1e-30)
 
 
+def at_1khz(t_s: np.ndarray, signals: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Signals sampled every internal step (t_s) brought to 1 kHz by scipy's polyphase anti-aliasing
+    resampler (what the partner's simulator does): the sample times t_s[0] + k ms."""
+    from fractions import Fraction
+    fs = 1.0 / float(np.median(np.diff(t_s)))
+    r = Fraction(1000.0 / fs).limit_denominator(100)
+    if r == 1:
+        return t_s, signals
+    out = {k: signal.resample_poly(y - y[0], r.numerator, r.denominator) + y[0] for k, y in signals.items()}
+    n = min(y.size for y in out.values())
+    return t_s[0] + np.arange(n) * 1e-3, {k: y[:n] for k, y in out.items()}
+
+
 def _aa_decimate(x: np.ndarray, variant: dict) -> np.ndarray:
     kind, corner = variant.get("aa", ("butter", 0.4))
     wn = corner * FS_OUT / (1000.0 / 2)
@@ -345,6 +361,11 @@ def _modal_response(fq: np.ndarray, w: np.ndarray, z: np.ndarray, dt: float) -> 
     (the trapezoidal rule at 1 ms rings it 2.5 % low)."""
     q_out, a_out = np.empty_like(fq), np.empty_like(fq)
     for j, (wj, zj) in enumerate(zip(w, z)):
+        if wj >= 0.9 * np.pi / dt:
+            # above 0.45 x the rate: quasi-static (discretised as a resonator it folds into the band)
+            q_out[:, j] = fq[:, j] / wj ** 2
+            a_out[:, j] = np.gradient(np.gradient(q_out[:, j], dt), dt)
+            continue
         a_mat = np.array([[0.0, 1.0], [-wj ** 2, -2 * zj * wj]])
         c_mat = np.array([[1.0, 0.0], [-wj ** 2, -2 * zj * wj]])
         ad, bd, cd, dd, _ = signal.cont2discrete((a_mat, np.array([[0.0], [1.0]]), c_mat, np.array([[0.0], [1.0]])),
@@ -534,11 +555,11 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
             res = st.advance(dur, v)
         if not np.all(np.abs(res.magnet_gap_m - 0.010) < 0.008):
             raise RuntimeError(f"{case_id}: truth vehicle lost levitation at {v} m/s ({effect}, {tp})")
-        t_hi = res.time_s
-        sig_hi = truth_signals(res, md["sensors"], st.vehicle.model)
+        t_hi, sig_hi = at_1khz(res.time_s, truth_signals(res, md["sensors"], st.vehicle.model))
         if effect == "girder_attachment" and v == max(speeds):
             # where the attachment shows: the same pass without it (noise-free truth signals)
-            sig0 = truth_signals(plain[0], md["sensors"], plain[1].model)
+            sig0 = at_1khz(plain[0].time_s, truth_signals(plain[0], md["sensors"], plain[1].model))[1]
+            sig0 = {k: y[:t_hi.size] for k, y in sig0.items()}
             tp["signature_bands_hz"] = signature_bands(sig_hi, sig0, md["sensors"], f"S{tp['span_index'] + 1}",
                                                        1.0 / float(np.median(np.diff(t_hi))),
                                                        NOISE_STD["guideway_accel"] * noise_scale)
@@ -558,8 +579,8 @@ def make_case(case_id: str, effect: str | None, params: dict, *, seed: int, spee
             ref = 0.010 if tp["channel"].endswith("G") else 0.0
             _apply_sensor_fault(sig, tp["channel"], tp, t, ref)
         pos_t = t[::5]
-        pos = np.interp(pos_t, t_hi, res.position_m) + rng.normal(0, 1e-3, pos_t.size)
-        spd = np.interp(pos_t, t_hi, res.speed_mps)
+        pos = np.interp(pos_t, res.time_s, res.position_m) + rng.normal(0, 1e-3, pos_t.size)
+        spd = np.interp(pos_t, res.time_s, res.speed_mps)
         passes.append(recording_from_arrays(md, {k: (t, y) for k, y in sig.items()}, (pos_t, pos, spd),
                                             source=f"{case_id}/pass_{v:g}"))
     ambient, _ = _ambient_recording(rng, seed, case_id, md_amb, spans, cfg_true, effect, tp, variant)

@@ -55,7 +55,7 @@ def test_attached_resonator_splits_the_mode_like_a_two_dof_system(mu, detune):
 def _truth_pass(speed, attach, seed, n_el=24):
     """A pass over 2 spans from a truth twin (finer mesh, smaller step) with the generator's
     attachment (or none), 1 kHz anti-aliased and decimated to 500 Hz, white sensor noise."""
-    from discrepancy_cases import NOISE_STD, TUNE_VARIANT, _aa_decimate, _attachment_modes, truth_signals
+    from discrepancy_cases import NOISE_STD, TUNE_VARIANT, _aa_decimate, _attachment_modes, at_1khz, truth_signals
     from maglev_ros.discrepancy.recording import TOPIC_GROUP
     from maglev_ros.twin.coupling import TwinStepper
     from maglev_ros.twin.design import line_spans, twin_config
@@ -71,7 +71,7 @@ def _truth_pass(speed, attach, seed, n_el=24):
     # (a twin 1e-11 m away from the generator's positions crossed it one step later)
     x0 = -offs.max() - 1.0 * speed - 1e-3
     dur = (2 * spans[0].length_m - offs.min() + 1.0 * speed - x0) / speed
-    st = TwinStepper(cfg, spans, sensors=gs, fs_out_hz=1000.0, start_position_m=x0, start_speed_mps=speed,
+    st = TwinStepper(cfg, spans, sensors=gs, fs_out_hz=2000.0, start_position_m=x0, start_speed_mps=speed,
                      init="rest", dt_max_s=5e-4)
     if attach is not None:
         st.modal = _attachment_modes(st.guideway, attach["span_index"], attach["x_rel_m"], attach["freq_hz"],
@@ -82,9 +82,10 @@ def _truth_pass(speed, attach, seed, n_el=24):
         st._q, st._qd, st._qdd = np.zeros(nq), np.zeros(nq), np.zeros(nq)
     st._init_static()
     res = st.advance(dur, speed)
-    t = res.time_s[1::2]
+    t_1k, sig_1k = at_1khz(res.time_s, truth_signals(res, md["sensors"], st.vehicle.model))
+    t = t_1k[1::2]
     sig = {}
-    for k, y in truth_signals(res, md["sensors"], st.vehicle.model).items():
+    for k, y in sig_1k.items():
         y = _aa_decimate(y, TUNE_VARIANT)         # the instrument's anti-alias filter, then 500 Hz
         sig[k] = (t, y + NOISE_STD[TOPIC_GROUP[md["sensors"][k]["topic"]]] * rng.standard_normal(y.size))
     pt = t[::5]

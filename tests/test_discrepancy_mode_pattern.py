@@ -38,6 +38,10 @@ def _ambient(truth_spec, seed=2, seconds=60.0):
     fq = rng.standard_normal((n, pts.size)) @ modal.shapes_at(pts)          # modal forces
     acc_modal = np.empty_like(fq)
     for k, (w, z) in enumerate(zip(modal.omega_rad_s, modal.damping_ratio)):
+        if w >= 0.8 * np.pi * fs:
+            # above 0.4 fs: the instrument's anti-alias filter removes it (and the pre-warp fails at Nyquist)
+            acc_modal[:, k] = 0.0
+            continue
         w = 2 * fs * np.tan(w / (2 * fs))          # pre-warped: the digital resonance lands on the mode
         b, a = signal.bilinear([1.0, 0.0, 0.0], [1.0, 2 * z * w, w * w], fs)
         acc_modal[:, k] = signal.lfilter(b, a, fq[:, k])

@@ -132,7 +132,7 @@ class LevitationDesign(_Dict):
 @dataclass(frozen=True)
 class NumericsConfig(_Dict):
     n_elements_per_span: int = 16
-    mode_cutoff_hz: float = 300.0
+    mode_cutoff_hz: float = 2000.0
     min_modes_per_span: int = 2
     dt_max_s: float = 1e-3
     # guideway modes integrated by frequency-prewarped Newmark (twin/coupling.py); False: plain

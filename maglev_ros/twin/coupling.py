@@ -621,7 +621,9 @@ def prewarped_modes(omega_rad_s: np.ndarray, damping_ratio: np.ndarray, h_s: flo
     the damping ratio g*zeta makes the acceleration response's peak and half-power width those of
     the continuous mode (to 0.1 % at w h = 0.58, 3 % at w h = 1.6); the displacement's resonant peak
     is 1/g low, the quasi-static deflection exact. Tan is capped at w h/2 = 1.4 (modes near the step's
-    Nyquist rate stay finite). ``prewarp=False``: the plain scheme."""
+    Nyquist rate stay finite): a mode above the cap rings at it (0.89 x the step's Nyquist frequency,
+    outside the bands a recording is compared in: the twin steps at least at the recording's rate) and is
+    kept for its quasi-static share at the sensors. ``prewarp=False``: the plain scheme."""
     w = np.asarray(omega_rad_s, float)
     z = np.asarray(damping_ratio, float)
     if not prewarp:

@@ -494,8 +494,8 @@ def _irregularity(sc: Scenario, x_lo: float, x_hi: float, rng_seq: np.random.See
 def _zoh_mode_filters(modal: ModalBasis, fs_hz: float):
     """Per mode: (num_disp, num_acc, den) of the ZOH-discretised SDOF q'' + 2 z w q' + w^2 q = p. A mode
     above 0.45 x the rate responds quasi-statically to forces band-limited below it (q = p / w^2, its
-    acceleration a second difference): discretised as a resonator it would fold into the band (a
-    1970 Hz mode at 2 kHz rang as a 30 Hz mode with 6 % damping)."""
+    acceleration a second difference): discretised as a resonator above the rate's Nyquist frequency
+    it would ring at its folded frequency, inside the band."""
     out = []
     dt = 1.0 / fs_hz
     for w, z in zip(modal.omega_rad_s, modal.damping_ratio):

@@ -335,7 +335,7 @@ def _noise(rng, n, std, colour: str) -> np.ndarray:
 
 def at_1khz(t_s: np.ndarray, signals: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Signals sampled every internal step (t_s) brought to 1 kHz by scipy's polyphase anti-aliasing
-    resampler (what the partner's simulator does): the sample times t_s[0] + k ms."""
+    resampler (an oversampled simulation's anti-alias step): the sample times t_s[0] + k ms."""
     from fractions import Fraction
     fs = 1.0 / float(np.median(np.diff(t_s)))
     r = Fraction(1000.0 / fs).limit_denominator(100)

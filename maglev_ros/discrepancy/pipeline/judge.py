@@ -103,8 +103,8 @@ def judge_hypotheses(cal: Calibration, loc: Localization, fr: Fits, config,
                 nr_c, _ = fit_report(combo, rd_combo_test)
                 now, _ = fit_report(final_spec, rd_fin_test)
                 if cfg.acceptance.clear_gain(now, nr_c) \
-                        or _helps_where_it_acts(hf, combo, final_spec, rd_fin_test, nr_c, now, local_ev, cfg.acceptance,
-                                                rd_combo_test):
+                        or _helps_where_it_acts(hf, combo, final_spec, rd_fin_test, rd_combo_test, nr_c, now, local_ev,
+                                                cfg.acceptance):
                     chosen.append((hf, v, d))
                     final_spec = combo
                     rd_fin, rd_fin_test = rd_combo, rd_combo_test
@@ -148,18 +148,17 @@ def judged_where_it_acts(hf, local_ev: dict) -> bool:
     return hf.hyp.category in VEHICLE_WIDE and id(hf) in local_ev and bool(hf.hyp.location.get("channels"))
 
 
-def _helps_where_it_acts(hf, combo: ModelSpec, now_spec: ModelSpec, rd_test: list, whole_combo: float,
-                         whole_now: float, local_ev: dict, acc: AcceptanceConfig, rd_combo_test: list | None = None
-                         ) -> bool:
+def _helps_where_it_acts(hf, combo: ModelSpec, now_spec: ModelSpec, rd_now: list, rd_combo: list,
+                         whole_combo: float, whole_now: float, local_ev: dict, acc: AcceptanceConfig) -> bool:
     """Levitation physics on top of another effect is judged by the held-out gates it was accepted by
     (:func:`..acceptance.judge_where_it_acts`: on the channels it acts on, the rest not worse). On the
     whole recording a control delay on top of a damaged zone (the magnets' items 0.20 -> 0.18) was
-    lost among the guideway sensors."""
+    lost among the guideway sensors. ``rd_now``/``rd_combo``: the held-out passes as each twin sees them."""
     if not judged_where_it_acts(hf, local_ev):
         return False
     at = levitation_items(set(hf.hyp.location["channels"]))
-    before, _ = fit_report(now_spec, rd_test, at)
-    after, _ = fit_report(combo, rd_test if rd_combo_test is None else rd_combo_test, at)
+    before, _ = fit_report(now_spec, rd_now, at)
+    after, _ = fit_report(combo, rd_combo, at)
     # only the held-out gates: BIC, plausibility and collinearity were judged when it was accepted
     return judge_where_it_acts(whole_now, whole_combo, before, after, -math.inf, (True, ""), 0.0, acc).accepted
 

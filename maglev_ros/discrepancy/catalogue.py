@@ -350,10 +350,14 @@ def ambient_background_hypothesis(guideway_channels: list[str], background: dict
                       plausible=plaus, describe=desc)
 
 
-def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float) -> Hypothesis:
-    """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second)."""
+def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float,
+                      rezeroed: bool = False) -> Hypothesis:
+    """Scale, offset and drift of one channel (parameters: ln scale, offset, drift per second).
+    ``rezeroed``: the offset and drift are the instrument's bias of each recording, re-estimated on
+    every pass (an accelerometer's); the parameters then hold those of the pass it was fitted on."""
     def apply(sp, p):
-        return sp.with_(sensor_error=((channel, math.exp(float(p[0])), float(p[1]), float(p[2])),))
+        return sp.with_(sensor_error=((channel, math.exp(float(p[0])), float(p[1]), float(p[2])),),
+                        sensor_rezeroed=(channel,) if rezeroed else ())
 
     def plaus(p):
         s, o, d = math.exp(p[0]), p[1], p[2]
@@ -373,9 +377,11 @@ def sensor_hypothesis(channel: str, unit: str, noise_std: float, t_span_s: float
         if abs(d) * t_span_s >= 3 * noise_std:
             parts.append(f"drifts by {d:.3g} {unit}/s")
         what = ", ".join(parts) or "is slightly off"
+        if rezeroed and (abs(o) >= 3 * noise_std or abs(d) * t_span_s >= 3 * noise_std):
+            what += " on the pass it was fitted on (its bias is re-estimated on each recording)"
         return (f"Sensor {channel} {what}; the other sensors agree with the twin, so this is the instrument, "
                 f"not the structure (recalibrate or replace it).",
-                {"channel": channel, "scale": s, "offset": o, "drift_per_s": d})
+                {"channel": channel, "scale": s, "offset": o, "drift_per_s": d, "bias_per_recording": rezeroed})
     return Hypothesis("sensor_error", f"sensor_error@{channel}", ("ln_scale", "offset", "drift_per_s"),
                       (-2.0, -np.inf, -np.inf), (2.0, np.inf, np.inf), (0.0, 0.0, 0.0), apply, needs_sim=False,
                       location={"position_m": None, "span": None, "channels": [channel]},

@@ -23,7 +23,7 @@ from scipy.optimize import least_squares, minimize_scalar
 
 from .catalogue import VEHICLE_WIDE, Hypothesis
 from .evaluate import RecData, levitation_items, rail_band_filters, residual_rows, residual_vector
-from .model import CAL_PARAMS, ModelSpec
+from .model import CAL_PARAMS, ModelSpec, bias_and_drift, predict
 
 PRIOR_SIGMA = 0.5
 CAL_LO = np.array([-0.7, -2.5, -0.5, -0.7, -0.5])
@@ -355,7 +355,19 @@ def fit_sensor(base: BaseFit, hyp: Hypothesis, rds: list[RecData]) -> HypFit:
     # held-out pass worse, 0.24 -> 0.40): gaps get scale and offset only
     if all(rd.rec.channels[ch].group == "gap" and rail_band_filters(rd.rec) for rd in rds if ch in rd.rec.channels):
         scale[2] = 0.0
-    return _fit_cheap(base, hyp, rds, scale, np.zeros(3), ([-2, -50, -50], [2, 50, 50]))
+    rezeroed = ch in hyp.apply(base.spec, np.zeros(3)).sensor_rezeroed
+    if rezeroed:
+        scale[1:] = 0.0          # each recording's own bias is estimated inside the prediction
+    hf = _fit_cheap(base, hyp, rds, scale, np.zeros(3), ([-2, -50, -50], [2, 50, 50]))
+    if not rezeroed:
+        return hf
+    # the parameters carry the bias of the (first) pass it was fitted on, for the plausibility and the report
+    rd = next(rd for rd in rds if ch in rd.rec.channels)
+    plain = base.spec.with_(sensor_error=((ch, math.exp(float(hf.params[0])), 0.0, 0.0),))
+    c = rd.rec.channels[ch]
+    o, d = bias_and_drift(c.time_s, c.values - predict(plain, rd.rec)[ch])
+    p = np.array([hf.params[0], o, d])
+    return replace(hf, params=p, spec=hyp.apply(base.spec, p))
 
 
 def _fit_cheap(base, hyp, rds, scale, z0, bounds) -> HypFit:

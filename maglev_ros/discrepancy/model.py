@@ -70,6 +70,10 @@ class ModelSpec:
     current_limit_sides: str = "both"                       # "both" or "upper" (twin.coupling)
     resonator: Any = None                                   # discovery: added girder resonator (.attachment.Resonator)
     sensor_error: tuple[tuple[str, float, float, float], ...] = ()   # (channel, scale, offset, drift/s)
+    # channels of sensor_error whose offset and drift are re-estimated on each recording (an
+    # accelerometer's bias is not repeatable between recordings: it changes at power-up and with
+    # temperature); their entry's offset and drift are then those of the pass it was fitted on
+    sensor_rezeroed: tuple[str, ...] = ()
     ambient_log10_psd: float | None = None                  # modal force PSD at 20 Hz (ambient_excitation)
     ambient_slope: float = 0.0                              # PSD ~ (f / 20 Hz)^slope
     # (channel, band powers): a background measured on the quiet stretches of a pass; then
@@ -87,7 +91,7 @@ class ModelSpec:
     def physics_only(self) -> "ModelSpec":
         """Without what is added to the simulated signals (sensor errors, ambient vibration, dropouts):
         the part a simulation depends on (a cache key)."""
-        return replace(self, sensor_error=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(),
+        return replace(self, sensor_error=(), sensor_rezeroed=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(),
                        dropouts=())
 
     # --- calibrated values ---------------------------------------------------------------
@@ -379,6 +383,16 @@ def _result_bytes(res: PassResult) -> int:
     return sum(v.nbytes for v in vars(res).values() if isinstance(v, np.ndarray))
 
 
+def bias_and_drift(time_s: np.ndarray, residual: np.ndarray) -> tuple[float, float]:
+    """Least-squares offset (at the first sample) and drift per second of ``residual``."""
+    ok = np.isfinite(residual)
+    if ok.sum() < 2:
+        return 0.0, 0.0
+    t = time_s[ok] - time_s[0]
+    d, o = np.polyfit(t, residual[ok], 1)
+    return float(o), float(d)
+
+
 def reference_value(rec: Recording, name: str) -> float:
     """Value a channel reads at rest (gaps: nominal gap; everything else 0)."""
     if rec.channels[name].group == "gap":
@@ -467,7 +481,10 @@ def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> 
         if name in out:
             ref = reference_value(rec, name)
             t = rec.channels[name].time_s
-            out[name] = ref + s * (out[name] - ref) + o + d * (t - t[0])
+            out[name] = ref + s * (out[name] - ref)
+            if name in spec.sensor_rezeroed:
+                o, d = bias_and_drift(t, rec.channels[name].values - out[name])
+            out[name] = out[name] + o + d * (t - t[0])
     for (name, t0, t1, val) in spec.dropouts:
         if name in out:
             t = rec.channels[name].time_s

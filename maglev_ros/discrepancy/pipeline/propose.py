@@ -157,7 +157,8 @@ def catalogue_hypotheses(base: BaseFit, rds: list[RecData], zones: bool = False,
         # broadband noise (0.008 m/s^2 over 0-100 Hz called a 0.01-0.02 m/s^2 wandering bias "within the noise")
         usable = np.flatnonzero(rds[0].masks[n])
         noise = float(np.sqrt(rds[0].noise[n][usable[0]])) if usable.size else 0.0
-        hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s))
+        hyps.append(cat.sensor_hypothesis(n, GROUP_UNIT[ch.group], noise, rec.t1_s - rec.t0_s,
+                                          rezeroed=ch.group.endswith("_accel")))
     return hyps
 
 

@@ -117,6 +117,7 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
         groups = _span_groups(md, out.info["channels"])
         if len(groups) > 1:
             out = _with_span_groups(out, groups, args)
+        out = _spectral_peaks_only(out, r, read[TOPIC_ACCEL])
     return BagModes(out.result, out.info, out.plan, health)
 
 
@@ -151,6 +152,35 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
          "not_spectral_peaks_hz": [round(m.frequency_hz, 3) for k, m in enumerate(part.modes) if k not in kp]}
         for (sid, names), a, (_, part), kp in zip(groups, added, parts, keep)]
     return BagModes(merged, out.info, out.plan)
+
+
+def _spectral_peaks_only(out: BagModes, r, acc) -> BagModes:
+    """Every reported mode is a spectral peak of its own in the data it was identified on: a pole
+    that stabilizes over the model orders without a resonance in any channel's PSD (a ghost between
+    two modes of a broadband record) is not reported; one too close to another mode for the PSD to
+    resolve is kept (the test cannot decide). Dropped ones are listed in ``not_spectral_peaks_hz``."""
+    from maglev_ros.bag_windows import read_window
+    from maglev_ros.modal.groups import without_modes
+    from maglev_ros.modal.peaks import spectral_peak
+    f = out.result.frequencies_hz()
+    if f.size == 0:
+        return out
+    t0 = acc.first_time_s
+    win = out.info.get("free_decay_window")
+    lo = t0 + (win["start_s"] if win else 0.0)
+    hi = min(t0 + win["stop_s"] if win else np.inf, lo + GROUP_TEST_SAMPLES / float(acc.sample_rate_hz))
+    cd = read_window(r, acc, lo, hi)
+    cols = [list(cd.channels).index(n) for n in out.info["channels"] if n in cd.channels]
+    data = np.asarray(cd.data, dtype=float)[:, cols]
+    drop = set()
+    for k in range(f.size):
+        ratio, needed = spectral_peak(data.T, float(cd.sample_rate_hz), float(f[k]), np.delete(f, k))
+        if needed > 0 and ratio < needed:
+            drop.add(k)
+    out.info["not_spectral_peaks_hz"] = [round(float(f[k]), 3) for k in sorted(drop)]
+    if not drop:
+        return out
+    return BagModes(without_modes(out.result, drop), out.info, out.plan)
 
 
 def _span_groups(md, channels) -> list[tuple[str, list[str]]]:
@@ -304,6 +334,9 @@ def run(args) -> int:
               f"{100 * sz:6.3f} {m.mpc:6.3f}")
     if not res.modes:
         print("no stable modes found")
+    if info.get("not_spectral_peaks_hz"):
+        print("not reported (stable poles without a spectral peak of their own): "
+              + ", ".join(f"{x:g} Hz" for x in info["not_spectral_peaks_hz"]))
     with outputs.Batch() as batch:          # the JSON and the plot replace the earlier pair together
         if args.json:
             doc = res.to_dict()

@@ -139,3 +139,18 @@ def merge_group_modes(joint: ModalResult, parts: Sequence[tuple[Sequence[str], M
                   stabilization=table, complex_shapes=tuple(phi for _, phi, _ in modes),
                   method=f"{joint.method}; per span group")
     return out, added
+
+
+def without_modes(res: ModalResult, drop: set[int]) -> ModalResult:
+    """``res`` without its modes ``drop`` (indices): their stabilization poles unclustered, ids renumbered."""
+    if not drop:
+        return res
+    keep = [i for i in range(len(res.modes)) if i not in drop]
+    new = {old: k for k, old in enumerate(keep)}
+    st = res.stabilization
+    if st is not None and len(st):
+        lab = np.array([new.get(int(c), -1) if c >= 0 else -1 for c in st.cluster], dtype=int)
+        st = replace(st, cluster=lab)
+    shapes = tuple(res.complex_shapes[i] for i in keep) if len(res.complex_shapes) == len(res.modes) else ()
+    return replace(res, modes=tuple(replace(res.modes[i], id=f"M{k + 1}") for k, i in enumerate(keep)),
+                   stabilization=st, complex_shapes=shapes)

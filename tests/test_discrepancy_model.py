@@ -109,6 +109,29 @@ def test_sensor_error_applies_scale_offset_drift():
     assert np.allclose(y, 0.1 + 0.05 * (t - t[0]))
 
 
+def test_an_accelerometers_bias_is_re_estimated_on_each_recording():
+    """An accelerometer's offset and drift change between recordings: with the channel re-zeroed, each
+    recording gets its own (the injected ones, within the least-squares line's standard errors), not
+    the values of the pass the error was fitted on; the scale stays the one given."""
+    from maglev_ros.discrepancy.model import predict
+    from maglev_ros.discrepancy.recording import recording_from_arrays
+    md = {"schema": "maglev-testline/1", "line": {"spans": [{"id": "S1", "start_m": 0.0, "length_m": L}]},
+          "sensors": {"G1": {"topic": "/testline/guideway/accel", "position_m": L / 2}},
+          "run": {"kind": "ambient"}}
+    t = np.arange(0, 10, 0.002)
+    rng = np.random.default_rng(5)
+    sigma = 0.004
+    spec = base_spec(md).with_(sensor_error=(("G1", 1.0, 0.011, 0.0016),), sensor_rezeroed=("G1",))
+    # the least-squares line's standard errors for white noise of std sigma over n samples in T seconds
+    n, T = t.size, t[-1] - t[0]
+    se_offset, se_drift = 2 * sigma / math.sqrt(n), math.sqrt(12) * sigma / (T * math.sqrt(n))
+    for offset, drift in ((0.011, 0.0016), (0.021, -0.0027)):
+        rec = recording_from_arrays(md, {"G1": (t, offset + drift * t + sigma * rng.standard_normal(t.size))})
+        y = predict(spec, rec)["G1"]
+        assert abs(y[0] - offset) < 4 * se_offset
+        assert abs((y[-1] - y[0]) / T - drift) < 4 * se_drift
+
+
 # ---------------------------------------------------------------------------------------------
 # magnet_nonlinearity: smooth current saturation in the twin's force kernel
 def _sat_run(limit, speed=25.0, dur=2.5, sides="both"):

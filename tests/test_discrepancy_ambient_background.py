@@ -54,6 +54,23 @@ def test_the_measured_form_carries_the_background_by_one_factor(prepared):
     assert params["ambient_rms_mps2"][n] == pytest.approx(math.sqrt(np.sum(rd.background[n])))
 
 
+def test_each_pass_brings_its_own_background(prepared):
+    """Ambient vibration changes between recordings: the form fitted on one pass (level 0.02 m/s^2)
+    gives another pass with twice that ambient (another recording) the level it measured itself."""
+    rec, rd = prepared["ambient_excitation"]
+    h = cat.ambient_background_hypothesis(rec.names("guideway_accel"), rd.background, "in pass 1",
+                                          frozenset(rec.names("guideway_accel")))
+    spec = h.apply(base_spec(rec.metadata), np.array([0.0]))
+    other = make_case("bg2", "ambient_excitation", {"rms_mps2": 2 * LEVEL}, seed=22, speeds=(24.0, 30.0),
+                      n_spans=2).passes[0]
+    rd2 = prepare(other, base_spec(other.metadata))
+    amb = ambient_powers(spec, rd2)
+    acc = [n for n in other.names("guideway_accel") if n in rd2.background and n in amb]
+    assert acc
+    rms = math.sqrt(np.mean([np.sum(amb[n]) for n in acc]))
+    assert 0.7 * 2 * LEVEL < rms < 1.15 * 2 * LEVEL
+
+
 def test_a_diagnosis_names_the_measured_ambient_at_its_level():
     """End to end on a small ambient case (the generator's drawn level is the reference): the report names
     ambient_excitation; when the measured form is the one carried, its RMS is the drawn level's order and the

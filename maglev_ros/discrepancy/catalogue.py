@@ -320,10 +320,11 @@ def ambient_hypothesis(guideway_channels: list[str], rms_of: Callable[[float, fl
 
 def ambient_background_hypothesis(guideway_channels: list[str], background: dict, source: str,
                                   accel_channels: frozenset = frozenset()) -> Hypothesis:
-    """The ambient vibration as measured on one pass's quiet stretches (``background``: channel -> band
-    powers above the noise floor, :attr:`..evaluate.RecData.background`), carried into every pass by
-    one level factor (parameter: its log10): a foreign line's ambient need not follow the twin's modes
-    and a power law in frequency. The RMS it reports is of ``accel_channels``."""
+    """The ambient vibration as measured on the quiet stretches of a pass (``background``: channel -> band
+    powers above the noise floor on the pass it is fitted on, :attr:`..evaluate.RecData.background`;
+    every other pass with quiet stretches of its own brings its own, :func:`..evaluate.ambient_powers`),
+    times one level factor (parameter: its log10): a foreign line's ambient need not follow the twin's
+    modes and a power law in frequency. The RMS it reports is of ``accel_channels``."""
     bg = tuple((n, tuple(float(x) for x in v)) for n, v in sorted(background.items()))
     rms1 = {n: math.sqrt(sum(v)) for n, v in bg if n in accel_channels}
 

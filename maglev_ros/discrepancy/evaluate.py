@@ -270,13 +270,17 @@ def ambient_shape(spec: ModelSpec, rd: RecData) -> dict:
 
 def ambient_powers(spec: ModelSpec, rd: RecData) -> dict:
     """Ambient band powers of the guideway channels: 10^level * shape * (f_band / 20 Hz)^slope, or
-    with a measured background (``spec.ambient_background``) 10^level times that background."""
+    with a measured background (``spec.ambient_background``: the channels it names, as measured on
+    the pass it was fitted on) 10^level times the background of ``rd``'s own quiet stretches where
+    it has them (ambient vibration from traffic and ground changes between recordings; each pass
+    measures its own), else that pass's."""
     if spec.ambient_log10_psd is None:
         return {}
     if spec.ambient_background:
         lvl = 10.0 ** spec.ambient_log10_psd
-        return {n: lvl * np.asarray(bg) for n, bg in spec.ambient_background
-                if n in rd.rec.channels and len(bg) == rd.grid.n_bands}
+        own = {n: bg for n, bg in rd.background.items() if len(bg) == rd.grid.n_bands}
+        return {n: lvl * np.asarray(own.get(n, bg)) for n, bg in spec.ambient_background
+                if n in rd.rec.channels and len(own.get(n, bg)) == rd.grid.n_bands}
     fc = np.maximum(rd.grid.band_center_hz, 1.0)
     w = (10.0 ** spec.ambient_log10_psd) * (fc / 20.0) ** spec.ambient_slope
     return {n: v * w for n, v in ambient_shape(spec, rd).items()}

@@ -91,8 +91,8 @@ class ModelSpec:
     def physics_only(self) -> "ModelSpec":
         """Without what is added to the simulated signals (sensor errors, ambient vibration, dropouts):
         the part a simulation depends on (a cache key)."""
-        return replace(self, sensor_error=(), sensor_rezeroed=(), ambient_log10_psd=None, ambient_slope=0.0, ambient_background=(),
-                       dropouts=())
+        return replace(self, sensor_error=(), sensor_rezeroed=(), ambient_log10_psd=None, ambient_slope=0.0,
+                       ambient_background=(), dropouts=())
 
     # --- calibrated values ---------------------------------------------------------------
     def cal_factor(self, name: str) -> float:
@@ -471,7 +471,8 @@ def _sampled(spec: ModelSpec, res: PassResult, rec: Recording) -> dict[str, np.n
 
 
 def predict(spec: ModelSpec, rec: Recording, fs_out_hz: float | None = None) -> dict[str, np.ndarray]:
-    """Predicted time series of every channel of ``rec`` (on its time stamps), with sensor errors."""
+    """Predicted time series of every channel of ``rec`` (on its time stamps), with sensor errors (a
+    re-zeroed channel's offset and drift are the least-squares line of ``rec``'s own residual)."""
     res = simulate(spec, rec, fs_out_hz)
     if res is None:
         out = {name: np.full(ch.time_s.size, reference_value(rec, name)) for name, ch in rec.channels.items()}

@@ -55,14 +55,27 @@ def test_free_decay_of_a_twin_pass_matches_the_ambient_modes(tmp_path):
         assert abs(fp / fa - 1) < 0.01, (f_true, fa, fp)      # ... and agree within 1 %
 
 
+@pytest.fixture(scope="module")
+def sample_ambient(tmp_path_factory):
+    """The sample bag's settings (paper-ambient, 120 s) per seed, each simulated once."""
+    bags = {}
+
+    def get(seed):
+        if seed not in bags:
+            bag = tmp_path_factory.mktemp(f"amb{seed}") / "amb"
+            twin_sim.simulate(twin_sim.builtin_scenarios()["paper-ambient"], bag, seed=seed, overwrite=True)
+            bags[seed] = bag
+        return bags[seed]
+    return get
+
+
 @pytest.mark.parametrize("seed", [2, 4])
-def test_no_spurious_mode_on_the_sample_ambient_settings(tmp_path, seed):
+def test_no_spurious_mode_on_the_sample_ambient_settings(sample_ambient, seed):
     """Issue 4: the sample bag's settings (paper-ambient, 120 s; seed 2 is bags/paper_ambient,
     seed 4 another realization) gave a stable, 4-9 %-damped mode-1-shaped pole at 30-41 Hz from
     the anti-alias-coloured mass line; the FE modes of the instrumented span are the only modes
     in 5-150 Hz."""
-    bag = tmp_path / "amb"
-    twin_sim.simulate(twin_sim.builtin_scenarios()["paper-ambient"], bag, seed=seed, overwrite=True)
+    bag = sample_ambient(seed)
     truth = json.loads(twin_sim.truth_paths(bag)[0].read_text())["instrumented_span"]
     from maglev_ros.commands.modes import identify_bag
     res, _ = identify_bag(bag, fmin_hz=5.0, fmax_hz=150.0)
@@ -72,12 +85,11 @@ def test_no_spurious_mode_on_the_sample_ambient_settings(tmp_path, seed):
     assert np.all(np.abs(np.sort(f) / f_true - 1) < 0.005), (f, f_true)
 
 
-def test_every_mode_reported_with_the_defaults_is_a_mode_of_the_line(tmp_path):
+def test_every_mode_reported_with_the_defaults_is_a_mode_of_the_line(sample_ambient):
     """The sample ambient settings with the verb's defaults (1-200 Hz, three bands): a pole that
     stabilizes between the first two modes without a spectral peak (30 Hz, 6 % damped, on this
     realization) is not reported; the FE modes of the instrumented span still are."""
-    bag = tmp_path / "amb"
-    twin_sim.simulate(twin_sim.builtin_scenarios()["paper-ambient"], bag, seed=2, overwrite=True)
+    bag = sample_ambient(2)
     truth = json.loads(twin_sim.truth_paths(bag)[0].read_text())["instrumented_span"]
     from maglev_ros.commands.modes import identify_modes
     out = identify_modes(bag)

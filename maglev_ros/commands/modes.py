@@ -115,9 +115,10 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
                 max_order, decimate_to_hz, window, scale_channels)
         out = _identify_streamed(*args)
         groups = _span_groups(md, out.info["channels"])
+        test = _test_window(out, r, read[TOPIC_ACCEL])
         if len(groups) > 1:
-            out = _with_span_groups(out, groups, args)
-        out = _spectral_peaks_only(out, r, read[TOPIC_ACCEL])
+            out = _with_span_groups(out, groups, args, test)
+        out = _spectral_peaks_only(out, test)
     return BagModes(out.result, out.info, out.plan, health)
 
 
@@ -126,18 +127,22 @@ def identify_modes(path, fmin_hz=None, fmax_hz=None, block_rows=None, max_order=
 GROUP_TEST_SAMPLES = 2 ** 18
 
 
-def _with_span_groups(out: BagModes, groups, args) -> BagModes:
-    """Each span's sensors identified alone too when the spans move apart (:mod:`maglev_ros.modal.groups`:
-    identical spans ring at one frequency and their joint poles never stabilize)."""
+def _test_window(out: BagModes, r, acc):
+    """The accelerations the identification used (the free-decay window of a pass), at most
+    GROUP_TEST_SAMPLES of them: what the span-group and spectral-peak tests look at."""
     from maglev_ros.bag_windows import read_window
-    from maglev_ros.modal.groups import independent_groups, merge_group_modes, spectral_peaks
-    r, acc = args[1], args[4]           # the open bag and its accelerations, as _identify_streamed takes them
-    chans = out.info["channels"]
     t0 = acc.first_time_s
     win = out.info.get("free_decay_window")
     lo = t0 + (win["start_s"] if win else 0.0)
     hi = min(t0 + win["stop_s"] if win else np.inf, lo + GROUP_TEST_SAMPLES / float(acc.sample_rate_hz))
-    cd = read_window(r, acc, lo, hi)
+    return read_window(r, acc, lo, hi)
+
+
+def _with_span_groups(out: BagModes, groups, args, cd) -> BagModes:
+    """Each span's sensors identified alone too when the spans move apart (:mod:`maglev_ros.modal.groups`:
+    identical spans ring at one frequency and their joint poles never stabilize). ``cd``: :func:`_test_window`."""
+    from maglev_ros.modal.groups import independent_groups, merge_group_modes, spectral_peaks
+    chans = out.info["channels"]
     cols = [[list(cd.channels).index(n) for n in names] for _, names in groups]
     data = np.asarray(cd.data, dtype=float)
     apart, evidence = independent_groups(data, float(cd.sample_rate_hz), cols)
@@ -154,29 +159,18 @@ def _with_span_groups(out: BagModes, groups, args) -> BagModes:
     return BagModes(merged, out.info, out.plan)
 
 
-def _spectral_peaks_only(out: BagModes, r, acc) -> BagModes:
-    """Every reported mode is a spectral peak of its own in the data it was identified on: a pole
-    that stabilizes over the model orders without a resonance in any channel's PSD (a ghost between
-    two modes of a broadband record) is not reported; one too close to another mode for the PSD to
-    resolve is kept (the test cannot decide). Dropped ones are listed in ``not_spectral_peaks_hz``."""
-    from maglev_ros.bag_windows import read_window
-    from maglev_ros.modal.groups import without_modes
-    from maglev_ros.modal.peaks import spectral_peak
+def _spectral_peaks_only(out: BagModes, cd) -> BagModes:
+    """Every reported mode is a spectral peak of its own in the data it was identified on (``cd``:
+    :func:`_test_window`): a pole that stabilizes over the model orders without a resonance in any
+    channel's PSD (a ghost between two modes of a broadband record) is not reported; one too close to
+    another mode for the PSD to resolve is kept (the test cannot decide). Dropped ones are listed in
+    ``not_spectral_peaks_hz``."""
+    from maglev_ros.modal.groups import spectral_peaks, without_modes
     f = out.result.frequencies_hz()
-    if f.size == 0:
-        return out
-    t0 = acc.first_time_s
-    win = out.info.get("free_decay_window")
-    lo = t0 + (win["start_s"] if win else 0.0)
-    hi = min(t0 + win["stop_s"] if win else np.inf, lo + GROUP_TEST_SAMPLES / float(acc.sample_rate_hz))
-    cd = read_window(r, acc, lo, hi)
     cols = [list(cd.channels).index(n) for n in out.info["channels"] if n in cd.channels]
     data = np.asarray(cd.data, dtype=float)[:, cols]
-    drop = set()
-    for k in range(f.size):
-        ratio, needed = spectral_peak(data.T, float(cd.sample_rate_hz), float(f[k]), np.delete(f, k))
-        if needed > 0 and ratio < needed:
-            drop.add(k)
+    keep = spectral_peaks(data, float(cd.sample_rate_hz), out.result, undecided=True) if f.size else set()
+    drop = set(range(f.size)) - keep
     out.info["not_spectral_peaks_hz"] = [round(float(f[k]), 3) for k in sorted(drop)]
     if not drop:
         return out

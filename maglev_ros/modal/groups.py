@@ -21,7 +21,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from maglev_ros.modal.peaks import is_spectral_peak
+from maglev_ros.modal.peaks import spectral_peak
 from maglev_ros.modal.ssi_cov import ModalResult
 from maglev_ros.modal.stabilization import PoleTable, mac
 
@@ -70,13 +70,18 @@ def independent_groups(data: np.ndarray, fs_hz: float, groups: Sequence[Sequence
     return worst <= bar, {"weighted_coherence": worst, "chance_99": bar, "segments": k}
 
 
-def spectral_peaks(x: np.ndarray, fs_hz: float, part: ModalResult) -> set[int]:
+def spectral_peaks(x: np.ndarray, fs_hz: float, part: ModalResult, undecided: bool = False) -> set[int]:
     """Indices of ``part``'s modes that are spectral peaks of their own in the columns ``x`` (samples
     x its channels; :mod:`.peaks`): a group of two sensors cannot tell a pole on the skirt of its
     span's mode from a mode by its shape (a 2-channel span placed one at 18.5 Hz, 1 %, beside its
-    23.5 Hz mode)."""
+    23.5 Hz mode). ``undecided``: whether a mode too close to another for the PSD to resolve counts."""
     f = np.array([m.frequency_hz for m in part.modes], dtype=float)
-    return {k for k in range(f.size) if is_spectral_peak(x.T, fs_hz, float(f[k]), np.delete(f, k))}
+    out = set()
+    for k in range(f.size):
+        ratio, needed = spectral_peak(x.T, fs_hz, float(f[k]), np.delete(f, k))
+        if (ratio >= needed > 0) or (undecided and needed == 0):
+            out.add(k)
+    return out
 
 
 def _same(joint: ModalResult, j: int, part: ModalResult, k: int, cols: list[int]) -> bool:

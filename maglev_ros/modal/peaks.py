@@ -47,7 +47,3 @@ def spectral_peak(signals: Iterable[np.ndarray], fs_hz: float | Iterable[float],
         needed = 1.0 + 3.0 / math.sqrt(k)
     return best, (needed if np.isfinite(needed) else 0.0)
 
-
-def is_spectral_peak(signals, fs_hz, f_hz: float, others_hz=()) -> bool:
-    ratio, needed = spectral_peak(signals, fs_hz, f_hz, others_hz)
-    return needed > 0 and ratio >= needed

@@ -257,3 +257,17 @@ def test_the_report_states_the_sensor_delay_the_passes_measure(report):
     assert d["applied"]
     assert gd.min() * 1e-3 - 3 * d["std_s"] <= d["delay_s"] <= gd.max() * 1e-3 + 3 * d["std_s"]
     assert "Sensor delay:" in (out / "report.html").read_text()
+
+
+def test_the_report_states_what_limits_the_calibrated_fit(report):
+    """The calibrated fit and the share of it the rail's reconstruction uncertainty makes (the
+    floor's own numbers are checked against a noise-free twin in test_discrepancy_fit_floor)."""
+    out, _, _ = report
+    rep = json.loads((out / "report.json").read_text())
+    f = rep["calibration"]["fit_floor"]
+    assert f["calibrated_nrmse"] == pytest.approx(rep["fit_before"]["nrmse"])
+    assert 0 < f["rail_uncertainty_nrmse"] <= f["calibrated_nrmse"]
+    assert f["remainder_nrmse"] ** 2 + f["rail_uncertainty_nrmse"] ** 2 == pytest.approx(f["calibrated_nrmse"] ** 2)
+    assert set(f["rail_uncertainty_per_group"]) <= set(rep["calibration"]["fit_per_group"])
+    page = (out / "report.html").read_text()
+    assert "What limits the calibrated fit" in page and f"{f['rail_uncertainty_nrmse']:.3f}" in page

@@ -184,6 +184,7 @@ def _note_gain(rec: Recording, g, info: dict, say) -> None:
             "keeps the band of the 2 cm grid")
     else:
         info["denoise"] = g.to_dict()
+        info["rail_gain"] = g           # its spectra: the rail's remaining uncertainty (.floor)
 
 
 def _attach(rec: Recording, ti, xr, info: dict, margin_m: float) -> Recording:

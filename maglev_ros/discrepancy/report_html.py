@@ -401,6 +401,17 @@ def _delay_note(rep: dict) -> str:
     return f"<p>Sensor delay: {html.escape(d['reason'])} ({what}).</p>"
 
 
+def _floor_note(rep: dict) -> str:
+    """What limits the calibrated fit (the rail's uncertainty, :mod:`.floor`), per channel group."""
+    f = (rep.get("calibration") or {}).get("fit_floor")
+    if not f:
+        return ""
+    groups = (rep.get("calibration") or {}).get("fit_per_group") or {}
+    rows = [[g, _fmt(groups.get(g), 3), _fmt(v, 3)] for g, v in sorted(f["rail_uncertainty_per_group"].items())]
+    return (f"<h3>What limits the calibrated fit</h3><p>{html.escape(f['explanation'])}</p>"
+            + _table(rows, ["channel group", "calibrated NRMSE", "from the rail's uncertainty"], "fit-floor"))
+
+
 def render(diagnosis) -> str:
     import matplotlib
     matplotlib.use("Agg")
@@ -419,6 +430,7 @@ def render(diagnosis) -> str:
         + ("<ul>" + "".join(f"<li><b>{html.escape(m['effect'])}</b> ({html.escape(m['category'])}): "
                             f"{html.escape(m['explanation'])}</li>" for m in found) + "</ul>"
            if found else "<p>Nothing is missing: the calibrated twin explains the recordings within the noise.</p>")
+        + _floor_note(rep)
         + "<h3>Recordings</h3>"
         + _table(_recordings_rows(ex), ["recording", "role", "duration [s]", "mean speed [m/s]", "channels"],
                  "recordings")

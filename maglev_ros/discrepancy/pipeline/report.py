@@ -5,7 +5,8 @@ words and the held-out evidence), an accepted air-spring law and an accepted add
 the catalogue, its own name and category); ``rejected``: every hypothesis that was tried and lost,
 and what could not be tested with these recordings; ``fit_before`` / ``fit_after``: the calibrated
 twin and the twin after (which carries what was found); ``calibration``: what the base twin was set
-to before any hypothesis.
+to before any hypothesis, how well it fits per channel group and what limits that fit
+(``fit_floor``: the rail reconstruction's uncertainty, :mod:`..floor`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from ..bias_signature import BiasSignature
 from ..catalogue import VEHICLE_WIDE
 from ..evaluate import fit_report, model_powers, per_group
 from ..fitting import IDENTIFIABLE_LLR, HypFit, profile_spread
+from ..floor import rail_floor
 from ..localize import Mismatch, region_after, residual_map
 from ..mode_pattern import mode_pattern
 from ..model import ModelSpec
@@ -125,6 +127,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
     passes, rd_all = cal.data.passes, cal.data.rd_all
     same_heldout, notes, raw_passes = cal.same_heldout, cal.notes, cal.prepare.raw_passes
     nr_before, pc_before = cal.fit_nrmse, cal.fit_per_channel
+    floor = rail_floor(base.spec, rd_all, nr_before)
     rd_amb, maps, found, detuned = loc.ambient, loc.maps, loc.found, loc.detuned
     fits, by_peers, signatures, sig_of, local_ev = jd.fits, jd.by_peers, jd.signatures, jd.sig_of, jd.local_ev
     disc, chosen, final_spec, rd_fin, maps_after = dc.findings, dc.chosen, dc.final_spec, dc.rd_fin, dc.maps_after
@@ -169,6 +172,7 @@ def build_report(cal: Calibration, loc: Localization, prop: Proposal, fr: Fits, 
         "calibration": {"parameters": base.spec.calibrated_values(), "damping": damping.to_dict(),
                         "fit_per_group": per_group(pc_before, {n: c.group for rd in rd_all
                                                                 for n, c in rd.rec.channels.items()}),
+                        **({"fit_floor": floor.to_dict()} if floor is not None else {}),
                         **({"heldout_guard": cal.guard.to_dict()} if cal.guard else {}),
                         **({"sensor_delay": cal.sensor_delay} if cal.sensor_delay else {}),
                         **({"instrument_band": [lim.to_dict() for lim in cal.prepare.band_limits.values()]}

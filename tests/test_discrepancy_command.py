@@ -1,5 +1,7 @@
 """`maglev-ros diagnose` end to end on contract bags with a concealed sensor fault: JSON schema, the
 fault found on the right channel, the HTML report renders offline in headless Chromium."""
+import contextlib
+import io
 import json
 import os
 import shutil
@@ -31,7 +33,10 @@ def run(tmp_path_factory):
     argv = ["diagnose", "--ambient", amb, "--out", str(out)]
     for p in passes:
         argv += ["--pass", p]
-    assert main(argv) == 0
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        assert main(argv) == 0
+    (d / "stdout.txt").write_text(said.getvalue())
     return out
 
 
@@ -108,3 +113,11 @@ def test_html_report_renders_offline_in_headless_chromium(run, tmp_path):
     assert dom.count("data:image/png;base64,") >= 4
     # the bags were read from a temporary directory: the report names them, never by that path
     assert str(run.parent) not in html and "/tmp" not in html
+
+
+def test_the_command_says_what_limits_the_calibrated_fit(run):
+    rep = json.loads((run / "report.json").read_text())
+    f = rep["calibration"]["fit_floor"]
+    said = (run.parent / "stdout.txt").read_text()
+    assert (f"calibrated fit {f['calibrated_nrmse']:.3f}, of which the rail's reconstruction uncertainty "
+            f"{f['rail_uncertainty_nrmse']:.3f}") in said

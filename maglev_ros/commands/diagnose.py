@@ -41,7 +41,7 @@ def run(args) -> int:
     print(f"fit before {rep['fit_before']['nrmse']:.3f}, after {rep['fit_after']['nrmse']:.3f}; "
           f"{len(rep['mismatches'])} mismatch(es); missing physics: "
           f"{', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}")
-    floor = rep["calibration"].get("fit_floor")
+    floor = (rep.get("calibration") or {}).get("fit_floor")
     if floor:
         print(f"calibrated fit {floor['calibrated_nrmse']:.3f}, of which the rail's reconstruction uncertainty "
               f"{floor['rail_uncertainty_nrmse']:.3f} (report: calibration.fit_floor)")

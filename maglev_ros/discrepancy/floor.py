@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .evaluate import RecData, _fit_items, fit_mask, model_powers
+from .evaluate import RecData, _fit_items, fit_mask, model_powers, per_group
 
 # one draw per pass (two on a single pass): the estimate's spread between draws was 3-6 % of it
 DRAWS_PER_PASS = 1
@@ -113,39 +113,48 @@ def rail_floor(spec, rds: list[RecData], calibrated_nrmse: float, seed: int = 0)
     per_chan: dict[str, list] = {}
     err_ms: list[float] = []
     for rd in usable:
-        gain = rd.rec.irregularity_info["rail_gain"]
-        longest = (rd.rec.irregularity_info.get("band") or {}).get("max_wavelength_m")
-        x, r = (np.asarray(a, float) for a in rd.rec.irregularity)
-        base_items = _fit_items(spec, rd)
-        mp0 = model_powers(spec, rd)
-        here: list[float] = []
-        for _ in range(draws):
-            e = draw_rail_error(rng, x.size, float(np.median(np.diff(x))), gain, longest)
-            err_ms.append(float(np.mean(e ** 2)))
-            rd_e = replace(rd, rec=replace(rd.rec, irregularity=(x, r + e)))
-            mp1 = model_powers(spec, rd_e)
-            pert = _fit_items(spec, rd_e, mp=mp1)
-            here += [float(np.sqrt(np.sum((b[1] - p[1]) ** 2))) / b[2] for b, p in zip(base_items, pert)]
-            for n in rd.rec.channels:      # as fit_report's per-channel NRMSE: every usable band
-                am = np.sqrt(np.clip(rd.pm[n], 0, None))
-                a0, a1 = (np.sqrt(np.clip(p[n], 0, None)) for p in (mp0, mp1))
-                ok = np.isfinite(am) & np.isfinite(a0) & np.isfinite(a1) & rd.masks[n][None, :]
-                den = float(np.sqrt(np.sum(am[ok] ** 2)))
-                if den > 0:
-                    per_chan.setdefault(n, []).append(float(np.sqrt(np.sum((a1[ok] - a0[ok]) ** 2))) / den)
-        items_all += here
-        per_pass[rd.rec.name] = float(np.sqrt(np.mean(np.square(here)))) if here else 0.0
+        items, chans, ms = _pass_misfits(spec, rd, rng, draws)
+        items_all += items
+        err_ms += ms
+        for n, v in chans.items():
+            per_chan.setdefault(n, []).extend(v)
+        per_pass[rd.rec.name] = float(np.sqrt(np.mean(np.square(items)))) if items else 0.0
     nrmse = float(np.sqrt(np.mean(np.square(items_all)))) if items_all else 0.0
-    groups = {n: c.group for rd in usable for n, c in rd.rec.channels.items()}
-    by_group: dict[str, list] = {}
     chan = {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in per_chan.items()}
-    for n, v in chan.items():
-        by_group.setdefault(groups.get(n, "other"), []).append(v)
-    per_group = {g: float(np.sqrt(np.mean(np.square(v)))) for g, v in by_group.items()}
+    groups = per_group(chan, {n: c.group for rd in usable for n, c in rd.rec.channels.items()})
     fitted = {n for rd in usable for n in rd.rec.channels if fit_mask(rd, n).any()}
     ranked = sorted((n for n in chan if n in fitted), key=lambda n: -chan[n])
     most = [n for n in ranked if chan[n] >= 0.8 * chan[ranked[0]]][:4] if ranked else []
     g0 = usable[0].rec.irregularity_info["rail_gain"]
-    return RailFloor(nrmse, per_group, per_pass, float(calibrated_nrmse),
+    return RailFloor(nrmse, groups, per_pass, float(calibrated_nrmse),
                      float(math.sqrt(max(calibrated_nrmse ** 2 - nrmse ** 2, 0.0))),
                      float(math.sqrt(np.mean(err_ms))), g0.cut_wavelength_m(g0.n_magnets), len(err_ms), most)
+
+
+def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
+    """One pass's misfits between the twin on its rail and on that rail plus drawn errors: per fit item
+    (the overall measure's), per channel (fit_report's: every usable band) and the drawn errors' mean
+    squares."""
+    info = rd.rec.irregularity_info
+    gain, longest = info["rail_gain"], (info.get("band") or {}).get("max_wavelength_m")
+    x, r = (np.asarray(a, float) for a in rd.rec.irregularity)
+    base_items = _fit_items(spec, rd)
+    mp0 = model_powers(spec, rd)
+    items: list[float] = []
+    chans: dict[str, list] = {}
+    err_ms: list[float] = []
+    for _ in range(draws):
+        e = draw_rail_error(rng, x.size, float(np.median(np.diff(x))), gain, longest)
+        err_ms.append(float(np.mean(e ** 2)))
+        rd_e = replace(rd, rec=replace(rd.rec, irregularity=(x, r + e)))
+        mp1 = model_powers(spec, rd_e)
+        items += [float(np.sqrt(np.sum((b[1] - p[1]) ** 2))) / b[2]
+                  for b, p in zip(base_items, _fit_items(spec, rd_e, mp=mp1))]
+        for n in rd.rec.channels:
+            am = np.sqrt(np.clip(rd.pm[n], 0, None))
+            a0, a1 = (np.sqrt(np.clip(p[n], 0, None)) for p in (mp0, mp1))
+            ok = np.isfinite(am) & np.isfinite(a0) & np.isfinite(a1) & rd.masks[n][None, :]
+            den = float(np.sqrt(np.sum(am[ok] ** 2)))
+            if den > 0:
+                chans.setdefault(n, []).append(float(np.sqrt(np.sum((a1[ok] - a0[ok]) ** 2))) / den)
+    return items, chans, err_ms

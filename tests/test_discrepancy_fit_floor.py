@@ -99,7 +99,7 @@ def test_no_floor_without_a_measured_error_spectrum(noisy_and_clean):
 
 def test_the_floors_words_state_its_numbers():
     from maglev_ros.discrepancy.floor import RailFloor
-    f = RailFloor(0.035, {"guideway_accel": 0.04}, {"pass": 0.035}, 0.059, float(np.sqrt(0.059 ** 2 - 0.035 ** 2)),
+    f = RailFloor(0.035, {"guideway_accel": 0.04}, {"G4RV": 0.045}, {"pass": 0.035}, 0.059, float(np.sqrt(0.059 ** 2 - 0.035 ** 2)),
                   1.6e-6, 0.064, 2, ["G4RV"])
     d = f.to_dict()
     assert d["rail_uncertainty_nrmse"] == 0.035 and d["remainder_nrmse"] == pytest.approx(0.0475, abs=1e-4)

@@ -69,6 +69,7 @@ class RailFloor:
     """The misfit the rail's reconstruction uncertainty alone makes, beside the calibrated fit."""
     nrmse: float                       # RMS over the fit's items and the draws (the fit's own measure)
     per_group: dict                    # channel group -> RMS over its channels (as fit_per_group)
+    per_channel: dict                  # channel -> its NRMSE from the rail's uncertainty (as fit_before's)
     per_pass: dict                     # pass name -> nrmse
     calibrated_nrmse: float
     remainder_nrmse: float             # sqrt(calibrated^2 - floor^2): model error, sensor noise, ambient
@@ -79,6 +80,7 @@ class RailFloor:
 
     def to_dict(self) -> dict:
         return {"rail_uncertainty_nrmse": self.nrmse, "rail_uncertainty_per_group": self.per_group,
+                "rail_uncertainty_per_channel": self.per_channel,
                 "rail_uncertainty_per_pass": self.per_pass, "calibrated_nrmse": self.calibrated_nrmse,
                 "remainder_nrmse": self.remainder_nrmse, "rail_error_rms_m": self.error_rms_m,
                 "half_gain_wavelength_m": self.half_gain_wavelength_m, "n_draws": self.n_draws,
@@ -126,7 +128,7 @@ def rail_floor(spec, rds: list[RecData], calibrated_nrmse: float, seed: int = 0)
     ranked = sorted((n for n in chan if n in fitted), key=lambda n: -chan[n])
     most = [n for n in ranked if chan[n] >= 0.8 * chan[ranked[0]]][:4] if ranked else []
     g0 = usable[0].rec.irregularity_info["rail_gain"]
-    return RailFloor(nrmse, groups, per_pass, float(calibrated_nrmse),
+    return RailFloor(nrmse, groups, chan, per_pass, float(calibrated_nrmse),
                      float(math.sqrt(max(calibrated_nrmse ** 2 - nrmse ** 2, 0.0))),
                      float(math.sqrt(np.mean(err_ms))), g0.cut_wavelength_m(g0.n_magnets), len(err_ms), most)
 

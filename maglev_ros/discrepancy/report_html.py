@@ -201,13 +201,18 @@ def _along_line(maps):
     return fig
 
 
-def _nrmse_bars(before: dict, after: dict):
+def _nrmse_bars(before: dict, after: dict, floor: dict | None = None):
+    """Per-channel NRMSE before and after; ``floor``: per channel, the part the rail's reconstruction
+    uncertainty alone makes (a tick across both bars: what no model of the physics can go below)."""
     import matplotlib.pyplot as plt
     names = list(before)
     fig, ax = plt.subplots(figsize=(9, 2.6))
     x = np.arange(len(names))
     ax.bar(x - 0.2, [before[n] for n in names], 0.4, label="before: calibrated twin")
     ax.bar(x + 0.2, [after.get(n, np.nan) for n in names], 0.4, label="after: twin + accepted physics")
+    if floor:
+        ax.hlines([floor.get(n, np.nan) for n in names], x - 0.42, x + 0.42, colors="k", linewidths=1.5,
+                  label="the rail's uncertainty alone")
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=45, fontsize=8)
     ax.set_ylabel("band-amplitude NRMSE")
@@ -492,8 +497,11 @@ def render(diagnosis) -> str:
                  + _note("nominal") + _note("std") + "</section>")
     ba = ['<section id="before-after"><h2>Measured vs twin, before and after</h2>',
           "<p class='note'>Before: the calibrated twin. After: with the accepted physics. "
-          "The plots show the residual (measured - twin): where it drops, the physics explains the recording.</p>",
-          _img(_png(_nrmse_bars(before["per_channel"], after["per_channel"])), "per-channel NRMSE"),
+          "The plots show the residual (measured - twin): where it drops, the physics explains the recording. "
+          "A black tick marks the part of a channel's NRMSE the reconstructed rail's own uncertainty makes.</p>",
+          _img(_png(_nrmse_bars(before["per_channel"], after["per_channel"],
+                                ((rep.get("calibration") or {}).get("fit_floor") or {})
+                                .get("rail_uncertainty_per_channel"))), "per-channel NRMSE"),
           _note("NRMSE")]
     if rds and ex.get("base_spec") is not None and ex.get("final_spec") is not None:
         gains = {n: before["per_channel"][n] - after["per_channel"].get(n, before["per_channel"][n])

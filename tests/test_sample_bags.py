@@ -72,3 +72,12 @@ def test_calibrated_twin_fits_the_irregular_sample_pass(diagnosis):
     # magnets (without it: band-amplitude NRMSE ~0.99 on the vehicle channels)
     assert g["vehicle_accel"] < 0.15 and g["gap"] < 0.15 and g["guideway_disp"] < 0.1
     assert all(i.get("valid_m") for i in rep["irregularity"] if "source" in i)
+
+
+def test_the_noise_floor_is_a_part_of_the_calibrated_misfit(diagnosis):
+    """What the gap sensors' noise makes through the twin cannot exceed the whole calibrated misfit
+    (drawn from the magnets' whole disagreement, which on these passes holds the girder's ambient
+    vibration at its first mode's wavelength, it was 0.128 of 0.050)."""
+    rep, _ = diagnosis
+    f = rep["calibration"]["fit_floor"]
+    assert 0.0 < f["rail_uncertainty_nrmse"] <= rep["fit_before"]["nrmse"]

@@ -19,10 +19,10 @@ twin's own response to a measured error spectrum; no library propagates it.
 Why the white level and not the whole disagreement N: on the sample passes (a girder driven by
 ambient vibration) the magnets disagree on the first mode's wavelength as much as the rail shows
 there, and a floor drawn from that N (0.128) exceeded the whole calibrated misfit (0.050).
-Measured: on a generated line at 8 and 10 m/s with a 5 um gap sensor the floor is 0.81 of the misfit
-the noise makes against the same recordings without noise (0.64 at 22 and 30 m/s); on a foreign clean
-case 0.015 of a calibrated 0.059 (that case's twin at the true parameters fits 0.071 with the
-reconstructed rail and 0.033 with the true one: its rail errors are mostly not white noise).
+Measured: on a generated line at 8 and 10 m/s with a 5 um gap sensor the floor is 0.82 of the misfit
+the noise makes against the same recordings without noise (0.66 at 22 and 30 m/s); on a foreign clean
+case (two passes, 1 kHz, 5 um gaps) 0.034 of a calibrated 0.059, on the girder sensors off midspan
+(their second mode, excited by the 6-10 cm waves the noise hides); the sample passes 0.002 of 0.050.
 """
 from __future__ import annotations
 
@@ -41,8 +41,8 @@ MIN_DRAWS = 2
 def sensor_noise_psd(gain, k_max_cpm: float | None = None) -> float | None:
     """One magnet profile's white error level [m^2 / (cycle/m)]: the median of its error spectrum
     where the rail was not detected (R = 0: the profiles' disagreement is noise alone), over the
-    waves the spectra resolve and below ``k_max_cpm`` (the samples' own Nyquist: above it the grid
-    interpolates and the spectrum rolls off); the least resolved value when the rail shows everywhere.
+    waves the spectra resolve and below ``k_max_cpm`` (clear of the samples' Nyquist and the profile's
+    band edge, above which the spectrum rolls off); the least resolved value when the rail shows everywhere.
     Why white: the gap sensors' noise is white per sample, so along a pass at one speed too; what the
     magnets disagree on beyond it (the girder vibrating under each magnet, a position error) is no
     estimate's noise and is left to the remainder."""
@@ -164,7 +164,7 @@ def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
     info = rd.rec.irregularity_info
     gain, longest = info["rail_gain"], (info.get("band") or {}).get("max_wavelength_m")
     x, r = (np.asarray(a, float) for a in rd.rec.irregularity)
-    white = sensor_noise_psd(gain, _sample_nyquist_cpm(rd.rec))
+    white = sensor_noise_psd(gain, _noise_band_top_cpm(rd.rec))
     base_items = _fit_items(spec, rd)
     mp0 = model_powers(spec, rd)
     items: list[float] = []
@@ -187,10 +187,16 @@ def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
     return items, chans, err_ms
 
 
-def _sample_nyquist_cpm(rec) -> float | None:
-    """The wavenumber of the gap samples' Nyquist at the pass's top speed (their spacing along the rail)."""
+def _noise_band_top_cpm(rec) -> float | None:
+    """The shortest wave [cycles/m] a profile's error spectrum is read to: 0.8 of the lower of the gap
+    samples' Nyquist at the pass's top speed and the profile's own band edge (its ``min_wavelength_m``),
+    clear of the roll-off above either (the noise there is filtered, not white)."""
+    tops = []
     rates = [c.sample_rate_hz for c in rec.channels.values() if c.group == "gap"]
-    if not rates or rec.speed_mps is None or not np.size(rec.speed_mps):
-        return None
-    v = float(np.nanmax(np.abs(rec.speed_mps)))
-    return 0.5 * min(rates) / v if v > 0 else None
+    v = float(np.nanmax(np.abs(rec.speed_mps))) if rec.speed_mps is not None and np.size(rec.speed_mps) else 0.0
+    if rates and v > 0:
+        tops.append(0.5 * min(rates) / v)
+    shortest = ((rec.irregularity_info or {}).get("band") or {}).get("min_wavelength_m")
+    if shortest:
+        tops.append(1.0 / float(shortest))
+    return 0.8 * min(tops) if tops else None

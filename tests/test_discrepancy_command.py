@@ -119,5 +119,5 @@ def test_the_command_says_what_limits_the_calibrated_fit(run):
     rep = json.loads((run / "report.json").read_text())
     f = rep["calibration"]["fit_floor"]
     said = (run.parent / "stdout.txt").read_text()
-    assert (f"calibrated fit {f['calibrated_nrmse']:.3f}, of which the rail's reconstruction uncertainty "
+    assert (f"calibrated fit {f['calibrated_nrmse']:.3f}, of which the gap sensors' noise in the rail "
             f"{f['rail_uncertainty_nrmse']:.3f}") in said

@@ -43,7 +43,7 @@ def run(args) -> int:
           f"{', '.join(m['effect'] for m in rep['missing_physics']) or 'none'}")
     floor = (rep.get("calibration") or {}).get("fit_floor")
     if floor:
-        print(f"calibrated fit {floor['calibrated_nrmse']:.3f}, of which the rail's reconstruction uncertainty "
+        print(f"calibrated fit {floor['calibrated_nrmse']:.3f}, of which the gap sensors' noise in the rail "
               f"{floor['rail_uncertainty_nrmse']:.3f} (report: calibration.fit_floor)")
     print(f"wrote {out / 'report.json'}" + ("" if args.no_html else f" and {out / 'report.html'}"))
     return 0

@@ -90,13 +90,14 @@ def draw_rail_error(rng: np.random.Generator, n_points: int, spacing_m: float, g
 
 @dataclass(frozen=True)
 class RailFloor:
-    """The misfit the rail's reconstruction uncertainty alone makes, beside the calibrated fit."""
+    """The misfit the gap sensors' noise makes through the rail the twin is driven by, beside the
+    calibrated fit (keys ``rail_uncertainty_*``: that part of the rail's uncertainty)."""
     nrmse: float                       # RMS over the fit's items and the draws (the fit's own measure)
     per_group: dict                    # channel group -> RMS over its channels (as fit_per_group)
-    per_channel: dict                  # channel -> its NRMSE from the rail's uncertainty (as fit_before's)
+    per_channel: dict                  # channel -> its NRMSE from the gap noise in the rail (as fit_before's)
     per_pass: dict                     # pass name -> nrmse
     calibrated_nrmse: float
-    remainder_nrmse: float             # sqrt(calibrated^2 - floor^2): model error, sensor noise, ambient
+    remainder_nrmse: float             # sqrt(calibrated^2 - floor^2): model error, other noise, ambient, ...
     error_rms_m: float                 # RMS of the rail error the draws carry
     half_gain_wavelength_m: float | None   # where the reconstruction keeps half the rail (all profiles)
     n_draws: int

@@ -203,7 +203,7 @@ def _along_line(maps):
 
 def _nrmse_bars(before: dict, after: dict, floor: dict | None = None):
     """Per-channel NRMSE before and after; ``floor``: per channel, the part the rail's reconstruction
-    uncertainty alone makes (a tick across both bars: what no model of the physics can go below)."""
+    noise alone makes (a tick across both bars: what no model of the physics can go below)."""
     import matplotlib.pyplot as plt
     names = list(before)
     fig, ax = plt.subplots(figsize=(9, 2.6))
@@ -212,7 +212,7 @@ def _nrmse_bars(before: dict, after: dict, floor: dict | None = None):
     ax.bar(x + 0.2, [after.get(n, np.nan) for n in names], 0.4, label="after: twin + accepted physics")
     if floor:
         ax.hlines([floor.get(n, np.nan) for n in names], x - 0.42, x + 0.42, colors="k", linewidths=1.5,
-                  label="the rail's uncertainty alone")
+                  label="gap noise in the rail alone")
     ax.set_xticks(x)
     ax.set_xticklabels(names, rotation=45, fontsize=8)
     ax.set_ylabel("band-amplitude NRMSE")
@@ -407,14 +407,14 @@ def _delay_note(rep: dict) -> str:
 
 
 def _floor_note(rep: dict) -> str:
-    """What limits the calibrated fit (the rail's uncertainty, :mod:`.floor`), per channel group."""
+    """What limits the calibrated fit (the gap noise in the rail, :mod:`.floor`), per channel group."""
     f = (rep.get("calibration") or {}).get("fit_floor")
     if not f:
         return ""
     groups = (rep.get("calibration") or {}).get("fit_per_group") or {}
     rows = [[g, _fmt(groups.get(g), 3), _fmt(v, 3)] for g, v in sorted(f["rail_uncertainty_per_group"].items())]
     return (f"<h3>What limits the calibrated fit</h3><p>{html.escape(f['explanation'])}</p>"
-            + _table(rows, ["channel group", "calibrated NRMSE", "from the rail's uncertainty"], "fit-floor"))
+            + _table(rows, ["channel group", "calibrated NRMSE", "from the gap noise in the rail"], "fit-floor"))
 
 
 def render(diagnosis) -> str:
@@ -498,7 +498,7 @@ def render(diagnosis) -> str:
     ba = ['<section id="before-after"><h2>Measured vs twin, before and after</h2>',
           "<p class='note'>Before: the calibrated twin. After: with the accepted physics. "
           "The plots show the residual (measured - twin): where it drops, the physics explains the recording. "
-          "A black tick marks the part of a channel's NRMSE the reconstructed rail's own uncertainty makes.</p>",
+          "A black tick marks the part of a channel's NRMSE the gap sensors' noise makes through the rail.</p>",
           _img(_png(_nrmse_bars(before["per_channel"], after["per_channel"],
                                 ((rep.get("calibration") or {}).get("fit_floor") or {})
                                 .get("rail_uncertainty_per_channel"))), "per-channel NRMSE"),

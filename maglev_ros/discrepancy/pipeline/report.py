@@ -6,7 +6,7 @@ the catalogue, its own name and category); ``rejected``: every hypothesis that w
 and what could not be tested with these recordings; ``fit_before`` / ``fit_after``: the calibrated
 twin and the twin after (which carries what was found); ``calibration``: what the base twin was set
 to before any hypothesis, how well it fits per channel group and what limits that fit
-(``fit_floor``: the rail reconstruction's uncertainty, :mod:`..floor`).
+(``fit_floor``: the gap sensors' noise in the rail it is driven by, :mod:`..floor`).
 """
 from __future__ import annotations
 

@@ -420,9 +420,12 @@ def score_partner(results, pdir: Path, scorer=None) -> list[dict]:
                 ratio = fa / fb if fb > 0 else float("nan")
             except (TypeError, KeyError, ValueError):
                 fb = fa = ratio = float("nan")
+            # the part of the calibrated fit the gap sensors' noise makes through the rail (report's fit_floor)
+            floor = (((rep or {}).get("calibration") or {}).get("fit_floor") or {}).get("rail_uncertainty_nrmse")
             out.append({"case": r["case"], "clean": bool(truth["clean"]), "effects": effects, "wrong": wrong,
                         "reported": [str(e.get("effect")) for e in entries], "passed": bool(s["passed"]),
                         "detail": s["detail"], "fit_before": fb, "fit_after": fa, "ratio": ratio,
+                        "floor": float(floor) if floor is not None else float("nan"),
                         "fit_ok": bool(math.isfinite(ratio) and ratio <= scorer.FIT_RATIO),
                         "gain": 1.0 - ratio if math.isfinite(ratio) else 0.0,    # no report: nothing gained
                         "seconds": r.get("seconds")})
@@ -470,8 +473,9 @@ def print_partner_table(title, results, pdir: Path, scorer=None, n_total: int | 
         truth = " + ".join(e["effect"] for e in c["effects"]) or "clean"
         t = f"  {c['seconds']:.0f} s" if c.get("seconds") is not None else ""
         flag = "" if c["clean"] or c["fit_ok"] else f" (> {scorer.FIT_RATIO})"
+        fl = f" gap-noise floor {c['floor']:.3f} of {c['fit_before']:.3f}" if math.isfinite(c["floor"]) else ""
         print(f"  {c['case']:5s} {'PASS' if c['passed'] else 'FAIL'} {truth:40s} fit ratio {c['ratio']:.2f}{flag:8s} "
-              f"reported: {', '.join(c['reported']) or 'none'}{t}")
+              f"reported: {', '.join(c['reported']) or 'none'}{fl}{t}")
         print(f"        {c['detail']}")
     eff_cases = [c for c in sc if not c["clean"]]
     clean_cases = [c for c in sc if c["clean"]]
@@ -490,7 +494,7 @@ def print_partner_table(title, results, pdir: Path, scorer=None, n_total: int | 
     return {"rows": rows, "passed": npass, "cases": len(sc), "right": n_right, "effects": n_eff,
             "misplaced": n_mis, "wrong_physics_cases": n_wrong, "false_alarms": n_fa, "clean": len(clean_cases),
             "fit_ok": n_fit, "median_fit_gain": med,
-            "per_case": [{k: c[k] for k in ("case", "passed", "ratio", "detail")} for c in sc]}
+            "per_case": [{k: c[k] for k in ("case", "passed", "ratio", "floor", "detail")} for c in sc]}
 
 
 def run_partner(a, pdir: Path, out: dict) -> None:

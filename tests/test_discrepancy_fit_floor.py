@@ -124,3 +124,5 @@ def test_the_floors_words_state_its_numbers():
     text = d["explanation"]
     assert "0.035" in text and "0.059" in text and "35 %" in text and "6 cm" in text and "G4RV" in text
     assert "gap sensors' noise" in text and f"({d['remainder_nrmse']:.3f})" in text
+    at = RailFloor(0.063, {}, {}, {}, 0.063, 0.0, 1.9e-6, 0.073, 2, []).explanation()
+    assert "as well as their gap noise allows" in at and "0.063" in at

@@ -113,6 +113,10 @@ def test_no_floor_without_a_measured_error_spectrum(noisy_and_clean):
     spec, rds, _, fit = noisy_and_clean
     bare = [replace(rd, rec=replace(rd.rec, irregularity_info={})) for rd in rds]
     assert rail_floor(spec, bare, fit) is None
+    # a valid stretch off the rail's grid: nothing reconstructed to perturb
+    end = max(float(rd.rec.irregularity[0][-1]) for rd in rds)
+    off = [replace(rd, rec=replace(rd.rec, irregularity_valid_m=(end + 10.0, end + 20.0))) for rd in rds]
+    assert rail_floor(spec, off, fit) is None
 
 
 def test_the_floors_words_state_its_numbers():

@@ -136,7 +136,7 @@ class RailFloor:
 def rail_floor(spec, rds: list[RecData], calibrated_nrmse: float, seed: int = 0) -> RailFloor | None:
     """:class:`RailFloor` of the twin ``spec`` on the passes ``rds`` (as that twin sees them: their
     rails carry the reconstruction's ``rail_gain``); None when no pass has a measured error spectrum
-    (one magnet, or no rail)."""
+    (one magnet, or no rail, or no reconstructed stretch)."""
     usable = [rd for rd in rds if rd.rec.irregularity is not None
               and (rd.rec.irregularity_info or {}).get("rail_gain") is not None]
     if not usable:
@@ -153,8 +153,11 @@ def rail_floor(spec, rds: list[RecData], calibrated_nrmse: float, seed: int = 0)
         err_ms += ms
         for n, v in chans.items():
             per_chan.setdefault(n, []).extend(v)
-        per_pass[rd.rec.name] = float(np.sqrt(np.mean(np.square(items)))) if items else 0.0
-    nrmse = float(np.sqrt(np.mean(np.square(items_all)))) if items_all else 0.0
+        if items:
+            per_pass[rd.rec.name] = float(np.sqrt(np.mean(np.square(items))))
+    if not items_all:
+        return None
+    nrmse = float(np.sqrt(np.mean(np.square(items_all))))
     chan = {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in per_chan.items()}
     groups = per_group(chan, {n: c.group for rd in usable for n, c in rd.rec.channels.items()})
     fitted = {n for rd in usable for n in rd.rec.channels if fit_mask(rd, n).any()}
@@ -175,6 +178,8 @@ def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
     x, r = (np.asarray(a, float) for a in rd.rec.irregularity)
     white = sensor_noise_psd(gain, _noise_band_top_cpm(rd.rec))
     inside = _valid_window(x, rd.rec)
+    if not np.any(inside > 0):                # no reconstructed stretch inside its margins: nothing to perturb
+        return [], {}, []
     base_items = _fit_items(spec, rd)
     mp0 = model_powers(spec, rd)
     items: list[float] = []

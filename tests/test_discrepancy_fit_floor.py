@@ -1,4 +1,4 @@
-"""What limits the calibrated fit: the rail's reconstruction uncertainty (maglev_ros.discrepancy.floor).
+"""What limits the calibrated fit: the gap sensors' noise in the rail (maglev_ros.discrepancy.floor).
 
 References: the Wiener estimate's mean-square error (analytic: (1 - G)^2 R + G^2 N/n equals
 R (N/n) / (R + N/n)); Welch spectra of the drawn error profiles (scipy); on a generated clean line,
@@ -121,12 +121,12 @@ def test_no_floor_without_a_measured_error_spectrum(noisy_and_clean):
 
 def test_the_floors_words_state_its_numbers():
     from maglev_ros.discrepancy.floor import RailFloor
-    f = RailFloor(0.035, {"guideway_accel": 0.04}, {"G4RV": 0.045}, {"pass": 0.035}, 0.059, float(np.sqrt(0.059 ** 2 - 0.035 ** 2)),
-                  1.6e-6, 0.064, 2, ["G4RV"])
+    f = RailFloor(0.035, {"guideway_accel": 0.04}, {"G4RV": 0.045}, {"pass": 0.035}, 0.059, 1.6e-6, 0.064, 2,
+                  ["G4RV"])
     d = f.to_dict()
     assert d["rail_uncertainty_nrmse"] == 0.035 and d["remainder_nrmse"] == pytest.approx(0.0475, abs=1e-4)
     text = d["explanation"]
     assert "0.035" in text and "0.059" in text and "35 %" in text and "6 cm" in text and "G4RV" in text
     assert "gap sensors' noise" in text and f"({d['remainder_nrmse']:.3f})" in text
-    at = RailFloor(0.063, {}, {}, {}, 0.063, 0.0, 1.9e-6, 0.073, 2, []).explanation()
+    at = RailFloor(0.063, {}, {}, {}, 0.063, 1.9e-6, 0.073, 2, []).explanation()
     assert "as well as their gap noise allows" in at and "0.063" in at

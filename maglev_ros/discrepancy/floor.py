@@ -100,11 +100,15 @@ class RailFloor:
     per_channel: dict                  # channel -> its NRMSE from the gap noise in the rail (as fit_before's)
     per_pass: dict                     # pass name -> nrmse
     calibrated_nrmse: float
-    remainder_nrmse: float             # sqrt(calibrated^2 - floor^2): model error, other noise, ambient, ...
     error_rms_m: float                 # RMS of the rail error the draws carry
     half_gain_wavelength_m: float | None   # where the reconstruction keeps half the rail (all profiles)
     n_draws: int
     channels_most: list = field(default_factory=list)   # channels the floor weighs most on
+
+    @property
+    def remainder_nrmse(self) -> float:
+        """sqrt(calibrated^2 - floor^2): model error, the other sensors' noise, ambient, other rail errors."""
+        return math.sqrt(max(self.calibrated_nrmse ** 2 - self.nrmse ** 2, 0.0))
 
     def to_dict(self) -> dict:
         return {"rail_uncertainty_nrmse": self.nrmse, "rail_uncertainty_per_group": self.per_group,
@@ -164,9 +168,7 @@ def rail_floor(spec, rds: list[RecData], calibrated_nrmse: float, seed: int = 0)
     ranked = sorted((n for n in chan if n in fitted), key=lambda n: -chan[n])
     most = [n for n in ranked if chan[n] >= 0.8 * chan[ranked[0]]][:4] if ranked else []
     g0 = usable[0].rec.irregularity_info["rail_gain"]
-    return RailFloor(nrmse, groups, chan, per_pass, float(calibrated_nrmse),
-                     float(math.sqrt(max(calibrated_nrmse ** 2 - nrmse ** 2, 0.0))),
-                     float(math.sqrt(np.mean(err_ms))), g0.cut_wavelength_m(g0.n_magnets), len(err_ms), most)
+    return RailFloor(nrmse, groups, chan, per_pass, float(calibrated_nrmse), float(math.sqrt(np.mean(err_ms))), g0.cut_wavelength_m(g0.n_magnets), len(err_ms), most)
 
 
 def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
@@ -180,8 +182,8 @@ def _pass_misfits(spec, rd: RecData, rng: np.random.Generator, draws: int):
     inside = _valid_window(x, rd.rec)
     if not np.any(inside > 0):                # no reconstructed stretch inside its margins: nothing to perturb
         return [], {}, []
-    base_items = _fit_items(spec, rd)
     mp0 = model_powers(spec, rd)
+    base_items = _fit_items(spec, rd, mp=mp0)
     items: list[float] = []
     chans: dict[str, list] = {}
     err_ms: list[float] = []

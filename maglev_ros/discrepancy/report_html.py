@@ -406,12 +406,17 @@ def _delay_note(rep: dict) -> str:
     return f"<p>Sensor delay: {html.escape(d['reason'])} ({what}).</p>"
 
 
+def _fit_floor(rep: dict) -> dict:
+    """The report's ``calibration.fit_floor`` ({} when absent)."""
+    return (rep.get("calibration") or {}).get("fit_floor") or {}
+
+
 def _floor_note(rep: dict) -> str:
     """What limits the calibrated fit (the gap noise in the rail, :mod:`.floor`), per channel group."""
-    f = (rep.get("calibration") or {}).get("fit_floor")
+    f = _fit_floor(rep)
     if not f:
         return ""
-    groups = (rep.get("calibration") or {}).get("fit_per_group") or {}
+    groups = rep["calibration"].get("fit_per_group") or {}
     rows = [[g, _fmt(groups.get(g), 3), _fmt(v, 3)] for g, v in sorted(f["rail_uncertainty_per_group"].items())]
     return (f"<h3>What limits the calibrated fit</h3><p>{html.escape(f['explanation'])}</p>"
             + _table(rows, ["channel group", "calibrated NRMSE", "from the gap noise in the rail"], "fit-floor"))
@@ -500,8 +505,7 @@ def render(diagnosis) -> str:
           "The plots show the residual (measured - twin): where it drops, the physics explains the recording. "
           "A black tick marks the part of a channel's NRMSE the gap sensors' noise makes through the rail.</p>",
           _img(_png(_nrmse_bars(before["per_channel"], after["per_channel"],
-                                ((rep.get("calibration") or {}).get("fit_floor") or {})
-                                .get("rail_uncertainty_per_channel"))), "per-channel NRMSE"),
+                                _fit_floor(rep).get("rail_uncertainty_per_channel"))), "per-channel NRMSE"),
           _note("NRMSE")]
     if rds and ex.get("base_spec") is not None and ex.get("final_spec") is not None:
         gains = {n: before["per_channel"][n] - after["per_channel"].get(n, before["per_channel"][n])
